@@ -1,0 +1,43 @@
+# Setup is idempotent: each target installs what is missing, then runs.
+#   make quickstart   record demos of both tasks and print the expert's stage metrics
+#   make test         the test suite (default run, no GPU, about 10 minutes on 2 cores)
+SHELL := /bin/bash
+VENV := .venv
+STAMP := $(VENV)/.installed
+export MUJOCO_GL ?= egl
+export HF_HUB_OFFLINE ?= 1
+export TOKENIZERS_PARALLELISM ?= false
+
+# Python 3.12: from PATH, else pyenv's.
+PYTHON312 := $(shell for p in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
+	$$p -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1 && { echo $$p; break; }; done)
+
+.PHONY: setup system-deps quickstart test test-slow bench
+
+setup: system-deps $(STAMP)
+
+# Headless MuJoCo rendering needs EGL with Mesa's software driver.
+system-deps:
+	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0'; then \
+		echo "Installing EGL/Mesa for headless rendering"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -n "$(PYTHON312)" || { echo "Python 3.12 not found (looked on PATH and in ~/.pyenv/versions)"; exit 1; }
+	test -x $(VENV)/bin/python || $(PYTHON312) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q --upgrade pip
+	$(VENV)/bin/python -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+quickstart: setup
+	$(VENV)/bin/condground quickstart
+
+test: setup
+	$(VENV)/bin/python -m pytest -q
+
+test-slow: setup
+	$(VENV)/bin/python -m pytest -q -m slow
+
+bench: setup
+	$(VENV)/bin/condground bench

@@ -1,0 +1,88 @@
+"""The `condground` LeRobot env type: `lerobot-eval --env.type=condground --env.task=... --env.condition=...`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
+
+from lerobot_condground.conditions import ConditionSpec, check_task
+
+from . import GYM_NAMESPACE
+
+
+@EnvConfig.register_subclass("condground")
+@dataclass
+class CondGroundEnvConfig(EnvConfig):
+    """Pick-and-place with look-alike competitors.
+
+    task: PickPlaceFixedBin-v0 (fixed receptacle) or PickPlaceRandomBin-v0 (both randomized).
+    condition: a name (clean, object_color_2, receptacle_shape_1, full_mixed, ...) or fields
+        (object_color=2,receptacle_shape=1).
+    counterbalanced: permute target and competitor colors and shapes across episodes.
+    """
+
+    task: str | None = "PickPlaceRandomBin-v0"
+    condition: str = "clean"
+    counterbalanced: bool = False
+    fps: int = 20
+    episode_length: int = 300
+    obs_type: str = "pixels_agent_pos"
+    observation_height: int = 240
+    observation_width: int = 320
+    wrist_camera: bool = False
+    render_mode: str = "rgb_array"
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "pixels/top": f"{OBS_IMAGES}.top",
+            "pixels/wrist": f"{OBS_IMAGES}.wrist",
+        }
+    )
+
+    def __post_init__(self):
+        # Bad names and sizes fail here, when the command line is parsed, before any work starts.
+        from .pickplace_env import OBS_TYPES, check_resolution
+
+        check_task(self.task)
+        ConditionSpec.parse(self.condition)
+        check_resolution(self.observation_height, self.observation_width)
+        if self.obs_type not in OBS_TYPES:
+            raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
+        if self.episode_length < 1:
+            raise ValueError(f"episode_length={self.episode_length} must be a positive number of steps")
+        image = PolicyFeature(type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3))
+        if self.obs_type != "agent_pos":
+            self.features["pixels/top"] = image
+            if self.wrist_camera:
+                self.features["pixels/wrist"] = image
+        if self.obs_type != "pixels":
+            self.features["agent_pos"] = PolicyFeature(type=FeatureType.STATE, shape=(7,))
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_condground.envs"
+
+    @property
+    def gym_id(self) -> str:
+        return f"{GYM_NAMESPACE}/{self.task}"
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {
+            "condition": self.condition,
+            "counterbalanced": self.counterbalanced,
+            "obs_type": self.obs_type,
+            "observation_height": self.observation_height,
+            "observation_width": self.observation_width,
+            "wrist_camera": self.wrist_camera,
+            "render_mode": self.render_mode,
+            "fps": self.fps,
+            "max_episode_steps": self.episode_length,
+        }

@@ -1,0 +1,182 @@
+"""Scripted expert: reads privileged state, plans Cartesian waypoints, and tracks them with IK.
+
+Phases: approach, descend, grasp, lift, transport, place, release, retreat. Phase label 0 (acquire
+the object) covers approach..grasp; label 1 (transport and place) covers lift..retreat. A grasp that
+does not hold the target is retried from the approach.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+
+from . import robot
+from .assets import FLOOR_THICKNESS, OBJECT_HEIGHT, OBJECT_SHAPES
+from .layout import PREGRASP_MARGIN
+
+PHASES = ("approach", "descend", "grasp", "lift", "transport", "place", "release", "retreat", "done")
+PHASE_LABEL = {p: (0 if p in ("approach", "descend", "grasp") else 1) for p in PHASES}
+SPEED = 0.35  # m/s of the tool along a segment
+YAW_SPEED = 2.5  # rad/s
+CARRY_HEIGHT = 0.13  # tool height while moving above the table
+RELEASE_CLEARANCE = 0.022  # object bottom above the receptacle's floor when released
+MAX_RETRIES = 2
+
+
+def _tool_rotation(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _arc_interpolate(p0: np.ndarray, p1: np.ndarray, s: float) -> np.ndarray:
+    """Interpolates radius, azimuth and height about the base axis, so that moves across the table
+    sweep around the robot instead of cutting through its base."""
+    r0, r1 = math.hypot(p0[0], p0[1]), math.hypot(p1[0], p1[1])
+    if min(r0, r1) < 1e-3 or np.allclose(p0[:2], p1[:2]):
+        return p0 + s * (p1 - p0)
+    a0 = math.atan2(p0[1], p0[0])
+    a1 = a0 + _wrap(math.atan2(p1[1], p1[0]) - a0)
+    r, a = r0 + s * (r1 - r0), a0 + s * (a1 - a0)
+    return np.array([r * math.cos(a), r * math.sin(a), p0[2] + s * (p1[2] - p0[2])])
+
+
+class InverseKinematics:
+    """Damped least squares on the tool-center site, position and orientation."""
+
+    def __init__(self, model: mujoco.MjModel):
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.site = model.site("tcp").id
+        self.qadr = np.array([model.joint(n).qposadr[0] for n in robot.JOINT_NAMES])
+        self.dofadr = np.array([model.joint(n).dofadr[0] for n in robot.JOINT_NAMES])
+        self._jp = np.zeros((3, model.nv))
+        self._jr = np.zeros((3, model.nv))
+
+    def solve(self, q0: np.ndarray, pos: np.ndarray, yaw: float, iters: int = 30) -> np.ndarray:
+        q = q0.copy()
+        target_rot = _tool_rotation(yaw)
+        for _ in range(iters):
+            self.data.qpos[self.qadr] = q
+            mujoco.mj_kinematics(self.model, self.data)
+            mujoco.mj_comPos(self.model, self.data)
+            err_p = pos - self.data.site_xpos[self.site]
+            rot = self.data.site_xmat[self.site].reshape(3, 3)
+            err_r = 0.5 * sum(np.cross(rot[:, k], target_rot[:, k]) for k in range(3))
+            if np.linalg.norm(err_p) < 1e-4 and np.linalg.norm(err_r) < 1e-3:
+                break
+            mujoco.mj_jacSite(self.model, self.data, self._jp, self._jr, self.site)
+            jac = np.vstack([self._jp[:, self.dofadr], self._jr[:, self.dofadr]])
+            err = np.concatenate([err_p, err_r])
+            q = q + jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(6), err)
+            q = np.clip(q, robot.JOINT_RANGE[:, 0], robot.JOINT_RANGE[:, 1])
+        return q
+
+
+class ScriptedExpert:
+    """Call `reset(env)` after each `env.reset()`, then `act()` once per step."""
+
+    def __init__(self):
+        self.env = None
+
+    def reset(self, env) -> None:
+        self.env = env.unwrapped
+        if getattr(self, "_model", None) is not self.env.model:
+            self._model = self.env.model
+            self.ik = InverseKinematics(self.env.model)
+        self.q_cmd = self.env.joint_positions()
+        pos, rot = self.env.tcp_pose()
+        self.tool_pos = pos
+        self.tool_yaw = math.atan2(rot[1, 0], rot[0, 0])
+        self.grip = 0.0
+        self.retries = 0
+        self._start("approach")
+
+    @property
+    def phase_label(self) -> int:
+        return PHASE_LABEL[self.phase]
+
+    @property
+    def done(self) -> bool:
+        return self.phase == "done"
+
+    # -------------------------------------------------------------- planning
+    def _target(self):
+        pos, quat = self.env.entity_pose(1)
+        yaw = 2 * math.atan2(quat[3], quat[0])
+        return pos, yaw
+
+    def _grasp_yaw(self, object_yaw: float) -> float:
+        shape = OBJECT_SHAPES[self.env.layout.target_object.asset.shape]
+        base = object_yaw + shape.grasp_offset
+        if shape.grasp_period == 0:
+            return self.tool_yaw
+        k = round((self.tool_yaw - base) / shape.grasp_period)
+        return base + k * shape.grasp_period
+
+    def _start(self, phase: str) -> None:
+        self.phase = phase
+        self.step_in_phase = 0
+        env = self.env
+        obj_shape = OBJECT_SHAPES[env.layout.target_object.asset.shape]
+        open_grip = max(0.0, 1.0 - (obj_shape.grasp_width + PREGRASP_MARGIN) / robot.GRIPPER_STROKE)
+        rec = env.layout.target_receptacle
+        if phase == "approach":
+            obj_pos, obj_yaw = self._target()
+            self.grasp_yaw = self._grasp_yaw(obj_yaw)
+            self._segment(np.array([*obj_pos[:2], CARRY_HEIGHT]), self.grasp_yaw, open_grip)
+        elif phase == "descend":
+            obj_pos, _ = self._target()
+            self._segment(np.array([*obj_pos[:2], obj_pos[2] + 0.002]), self.grasp_yaw, open_grip, speed=0.2)
+        elif phase == "grasp":
+            self._segment(self.tool_pos, self.tool_yaw, 1.0, min_steps=int(0.5 * env.fps))
+        elif phase == "lift":
+            self._segment(self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, 1.0, speed=0.2)
+        elif phase == "transport":
+            self._segment(np.array([*rec.xy, CARRY_HEIGHT]), self.tool_yaw, 1.0)
+        elif phase == "place":
+            z = FLOOR_THICKNESS + RELEASE_CLEARANCE + OBJECT_HEIGHT / 2
+            self._segment(np.array([*rec.xy, z]), self.tool_yaw, 1.0, speed=0.2)
+        elif phase == "release":
+            self._segment(self.tool_pos, self.tool_yaw, open_grip, min_steps=int(0.4 * env.fps))
+        elif phase == "retreat":
+            self._segment(self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, open_grip, speed=0.25)
+        elif phase == "done":
+            self._segment(self.tool_pos, self.tool_yaw, open_grip, min_steps=1)
+
+    def _segment(self, goal, yaw, grip, speed=SPEED, min_steps=None):
+        dt = 1.0 / self.env.fps
+        dist = float(np.linalg.norm(np.asarray(goal) - self.tool_pos))
+        dyaw = _wrap(yaw - self.tool_yaw)
+        steps = max(int(math.ceil(max(dist / speed, abs(dyaw) / YAW_SPEED) / dt)), min_steps or 3)
+        self.seg = (self.tool_pos.copy(), np.asarray(goal, dtype=float), self.tool_yaw, self.tool_yaw + dyaw, self.grip, grip, steps)
+
+    # -------------------------------------------------------------- acting
+    def act(self, obs=None) -> np.ndarray:
+        p0, p1, y0, y1, g0, g1, steps = self.seg
+        self.step_in_phase += 1
+        a = min(self.step_in_phase / steps, 1.0)
+        s = a * a * (3 - 2 * a)  # smoothstep: no velocity jumps between segments
+        self.tool_pos = _arc_interpolate(p0, p1, s)
+        self.tool_yaw = y0 + s * (y1 - y0)
+        self.grip = g0 + a * (g1 - g0)
+        self.q_cmd = self.ik.solve(self.q_cmd, self.tool_pos, self.tool_yaw)
+        action = np.concatenate([self.q_cmd, [self.grip]]).astype(np.float32)
+        if self.step_in_phase >= steps:
+            self._advance()
+        return action
+
+    def _advance(self) -> None:
+        order = PHASES
+        nxt = order[min(order.index(self.phase) + 1, len(order) - 1)]
+        if self.phase == "lift" and self.env.tracker.held != 1 and self.retries < MAX_RETRIES:
+            self.retries += 1
+            nxt = "approach"
+        if self.phase == "done":
+            return
+        self._start(nxt)

@@ -1,0 +1,127 @@
+"""`condground bench`: simulation and recording throughput on this machine.
+
+Each figure is measured in the same process, one after the other, on the same scene, so the ratios
+(env step rate over render-only fps) compare like with like.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class BenchConfig:
+    task: str = "PickPlaceRandomBin-v0"
+    condition: str = "full_mixed"
+    observation_height: int = 240
+    observation_width: int = 320
+    # Seconds spent on each timed measurement.
+    seconds: float = 3.0
+    # Expert episodes recorded for the recording throughput.
+    record_episodes: int = 3
+    # Print one JSON object instead of a table.
+    json: bool = False
+
+
+def _rate(fn, seconds: float) -> float:
+    fn()  # warm-up: first render, first layout
+    count, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        count += fn()
+    return count / (time.perf_counter() - start)
+
+
+def _env_steps(env, policy, seconds: float) -> float:
+    state = {"obs": env.reset(seed=0)[0], "seed": 0}
+
+    def step() -> int:
+        obs, _, terminated, truncated, _ = env.step(policy(state["obs"]))
+        state["obs"] = obs
+        if terminated or truncated or getattr(policy, "done", False):
+            state["seed"] += 1
+            state["obs"] = env.reset(seed=state["seed"])[0]
+            if hasattr(policy, "reset"):
+                policy.reset(env)
+        return 1
+
+    if hasattr(policy, "reset"):
+        policy.reset(env)
+    return _rate(step, seconds)
+
+
+def run_bench(cfg: BenchConfig) -> dict:
+    import mujoco
+
+    from lerobot_condground.envs.configs import CondGroundEnvConfig
+    from lerobot_condground.envs.expert import ScriptedExpert
+    from lerobot_condground.envs.pickplace_env import PickPlaceEnv
+    from lerobot_condground.record import RecordConfig, RecordDatasetConfig, record
+
+    size = dict(observation_height=cfg.observation_height, observation_width=cfg.observation_width)
+    env = PickPlaceEnv(task=cfg.task, condition=cfg.condition, **size)
+    env.reset(seed=0)
+    model, data = env.model, env.data
+
+    def physics() -> int:
+        mujoco.mj_step(model, data, nstep=100)
+        return 100
+
+    def render() -> int:
+        env._render_rgb("top")
+        return 1
+
+    results = {
+        "task": cfg.task,
+        "condition": cfg.condition,
+        "resolution": [cfg.observation_height, cfg.observation_width],
+        "physics_steps_per_s": _rate(physics, cfg.seconds),
+        "physics_substeps_per_env_step": env.n_substeps,
+        "render_fps": _rate(render, cfg.seconds),
+    }
+    rng = np.random.default_rng(0)
+    random_policy = lambda obs: rng.uniform(env.action_space.low, env.action_space.high).astype(np.float32)  # noqa: E731
+    results["env_steps_per_s"] = _env_steps(env, random_policy, cfg.seconds)
+
+    class Expert(ScriptedExpert):
+        def __call__(self, obs):
+            return self.act(obs)
+
+    results["env_steps_per_s_expert"] = _env_steps(env, Expert(), cfg.seconds)
+    env.close()
+    seg_env = PickPlaceEnv(task=cfg.task, condition=cfg.condition, segmentation=True, **size)
+    results["env_steps_per_s_with_segmentation"] = _env_steps(seg_env, Expert(), cfg.seconds)
+    seg_env.close()
+    results["env_over_render_ratio"] = results["env_steps_per_s"] / results["render_fps"]
+
+    tmp = tempfile.mkdtemp(prefix="condground_bench_")
+    try:
+        start = time.perf_counter()
+        out = record(
+            RecordConfig(
+                env=CondGroundEnvConfig(task=cfg.task, condition=cfg.condition, **size),
+                dataset=RecordDatasetConfig(repo_id="local/bench", root=f"{tmp}/ds", num_episodes=cfg.record_episodes),
+                progress=False,
+            )
+        )
+        elapsed = time.perf_counter() - start
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        frames = LeRobotDataset("local/bench", root=f"{tmp}/ds").meta.total_frames
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    results["record_frames_per_s"] = frames / elapsed
+    results["record_s_per_episode"] = elapsed / out["total_episodes"]
+
+    if cfg.json:
+        print(json.dumps(results))
+    else:
+        width = max(len(k) for k in results)
+        for key, value in results.items():
+            print(f"{key:<{width}}  {value:.1f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+    return results

@@ -1,0 +1,59 @@
+"""`condground`: the plugin's own jobs. Flags follow LeRobot's `--group.key=value` style.
+
+    condground record      expert demonstrations -> LeRobotDataset
+    condground bench       simulation and recording throughput
+    condground quickstart  record a few episodes per task and print the expert's stage metrics
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import draccus
+
+COMMANDS = {
+    "record": "Record scripted-expert demonstrations into a LeRobotDataset (v3).",
+    "bench": "Measure physics, rendering, env-step and recording throughput on this machine.",
+    "quickstart": "Record a few episodes of each task and print the expert's stage metrics (clean, full_mixed).",
+}
+
+
+def _usage() -> str:
+    lines = ["usage: condground <command> [--group.key=value ...]", "", "commands:"]
+    lines += [f"  {name:<11} {text}" for name, text in COMMANDS.items()]
+    lines += ["", "`condground <command> --help` lists the flags of a command."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    command, args = argv[0], argv[1:]
+    if command not in COMMANDS:
+        print(f"condground: unknown command {command!r}; allowed: {', '.join(COMMANDS)}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if command == "record":
+        from lerobot_condground.record import RecordConfig, format_summary, record
+
+        cfg = draccus.parse(RecordConfig, args=args, prog="condground record")
+        print(format_summary(record(cfg)))
+    elif command == "bench":
+        from lerobot_condground.bench import BenchConfig, run_bench
+
+        args = ["--json=true" if a == "--json" else a for a in args]
+        cfg = draccus.parse(BenchConfig, args=args, prog="condground bench")
+        run_bench(cfg)
+    elif command == "quickstart":
+        from lerobot_condground.quickstart import QuickstartConfig, run_quickstart
+
+        cfg = draccus.parse(QuickstartConfig, args=args, prog="condground quickstart")
+        run_quickstart(cfg)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,262 @@
+"""`condground record`: scripted-expert demonstrations written to a LeRobotDataset (v3).
+
+Per frame: camera frames, `observation.state`, `action`, the phase label `observation.phase`
+(0 acquire the object, 1 transport and place), lossless masks `observation.mask.relevant` (the
+phase-relevant entity, 0/1) and `observation.mask.competitors` (segmentation label of the competitor
+at each pixel, 0 = none), and the positionless prompt crops `observation.prompt.object` and
+`observation.prompt.receptacle`. Labels are plain numeric `observation.*` features: they survive
+LeRobot's batch conversion, and a stock policy reads only `observation.state` and its cameras.
+
+Only successful expert episodes are kept; a failed one is retried with the next seed and counted.
+The dataset is closed after every `checkpoint_every` episodes, so a crash loses at most the episodes
+since the last checkpoint (by default only the one in flight); rerunning resumes up to
+`num_episodes` instead of overwriting.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_condground.envs.configs import CondGroundEnvConfig
+
+PROVENANCE_FILE = "meta/condground_record.json"
+PHASE_RELEVANT_LABEL = {0: 1, 1: 2}  # phase -> segmentation label of the entity that matters
+
+
+@dataclass
+class RecordDatasetConfig:
+    # Dataset id; used as the hub repo id with --dataset.push_to_hub=true.
+    repo_id: str = "local/condground_pickplace"
+    # Local directory of the dataset (default: $HF_LEROBOT_HOME/<repo_id>).
+    root: str | None = None
+    # Number of successful expert episodes the dataset should hold when done.
+    num_episodes: int = 100
+    # Encode camera frames as video (true) or store them as PNG images (false).
+    video: bool = True
+    # Close and reopen the dataset after this many episodes: a crash loses at most these.
+    checkpoint_every: int = 1
+    push_to_hub: bool = False
+    private: bool = False
+
+
+@dataclass
+class RecordConfig:
+    env: CondGroundEnvConfig = field(default_factory=CondGroundEnvConfig)
+    dataset: RecordDatasetConfig = field(default_factory=RecordDatasetConfig)
+    # Episode k of a fresh dataset is tried with seed + k (and later seeds after failures).
+    seed: int = 0
+    # Stop with an error when the expert fails this many episodes in a row.
+    max_consecutive_failures: int = 20
+    # Show a progress bar.
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.dataset.num_episodes < 1:
+            raise ValueError(f"dataset.num_episodes={self.dataset.num_episodes} must be at least 1")
+        if self.dataset.checkpoint_every < 1:
+            raise ValueError(f"dataset.checkpoint_every={self.dataset.checkpoint_every} must be at least 1")
+
+
+def dataset_features(env_cfg: CondGroundEnvConfig, video: bool) -> dict:
+    from lerobot_condground.envs.pickplace_env import PROMPT_SIZE
+    from lerobot_condground.envs.robot import MOTOR_NAMES
+
+    h, w = env_cfg.observation_height, env_cfg.observation_width
+    image = {"dtype": "video" if video else "image", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
+    crop = {"dtype": "uint8", "shape": (PROMPT_SIZE, PROMPT_SIZE, 3), "names": ["height", "width", "channels"]}
+    mask = {"dtype": "uint8", "shape": (h, w), "names": ["height", "width"]}
+    features = {
+        "observation.images.top": image,
+        "observation.state": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
+        "action": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
+        "observation.phase": {"dtype": "int64", "shape": (1,), "names": ["phase"]},
+        "observation.mask.relevant": mask,
+        "observation.mask.competitors": mask,
+        "observation.prompt.object": crop,
+        "observation.prompt.receptacle": crop,
+    }
+    if env_cfg.wrist_camera:
+        features["observation.images.wrist"] = dict(image)
+    return features
+
+
+def make_recording_env(env_cfg: CondGroundEnvConfig):
+    from lerobot_condground.envs.pickplace_env import PickPlaceEnv
+
+    return PickPlaceEnv(
+        task=env_cfg.task,
+        condition=env_cfg.condition,
+        counterbalanced=env_cfg.counterbalanced,
+        observation_height=env_cfg.observation_height,
+        observation_width=env_cfg.observation_width,
+        wrist_camera=env_cfg.wrist_camera,
+        segmentation=True,
+        prompts=True,
+        fps=env_cfg.fps,
+    )
+
+
+def run_expert_episode(env, expert, seed: int, max_steps: int, on_step=None) -> dict:
+    """One expert episode; `on_step(obs, action, phase_label)` sees every observation before its action."""
+    obs, info = env.reset(seed=seed)
+    expert.reset(env)
+    for _ in range(max_steps):
+        action = expert.act(obs)
+        if on_step is not None:
+            on_step(obs, action, expert.phase_label)
+        obs, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            break
+    return info
+
+
+def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict:
+    seg = obs["segmentation"]
+    frame = {
+        "observation.images.top": obs["pixels"]["top"],
+        "observation.state": obs["agent_pos"].astype(np.float32),
+        "action": action.astype(np.float32),
+        "observation.phase": np.array([phase], dtype=np.int64),
+        "observation.mask.relevant": (seg == PHASE_RELEVANT_LABEL[phase]).astype(np.uint8),
+        "observation.mask.competitors": np.where(seg >= 3, seg, 0).astype(np.uint8),
+        "observation.prompt.object": obs["prompt_object"],
+        "observation.prompt.receptacle": obs["prompt_receptacle"],
+        "task": task,
+    }
+    if "wrist" in obs["pixels"]:
+        frame["observation.images.wrist"] = obs["pixels"]["wrist"]
+    return frame
+
+
+def _dataset_root(cfg: RecordDatasetConfig) -> Path:
+    if cfg.root:
+        return Path(cfg.root)
+    from lerobot.utils.constants import HF_LEROBOT_HOME
+
+    return HF_LEROBOT_HOME / cfg.repo_id
+
+
+def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
+    """Creates the dataset, or resumes an existing one after checking it was made the same way."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    provenance_path = root / PROVENANCE_FILE
+    if (root / "meta" / "info.json").exists():
+        info = json.loads((root / "meta" / "info.json").read_text())
+        previous = json.loads(provenance_path.read_text()) if provenance_path.exists() else {}
+        mismatches = []
+        if info.get("fps") != cfg.env.fps:
+            mismatches.append(f"fps {info.get('fps')} != {cfg.env.fps}")
+        for key, ft in features.items():
+            have = info["features"].get(key)
+            if have is None or tuple(have["shape"]) != tuple(ft["shape"]) or have["dtype"] != ft["dtype"]:
+                mismatches.append(f"feature {key}")
+        for key in ("task", "condition", "counterbalanced"):
+            if previous.get("env", {}).get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
+                mismatches.append(f"env.{key} {previous['env'][key]!r} != {getattr(cfg.env, key)!r}")
+        if mismatches:
+            raise ValueError(
+                f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
+                f"choose another --dataset.root or record with the same settings to resume it"
+            )
+        dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root)
+        return dataset, previous
+    dataset = LeRobotDataset.create(
+        cfg.dataset.repo_id, fps=cfg.env.fps, features=features, root=root, robot_type="ur3e_sim",
+        use_videos=cfg.dataset.video,
+    )
+    return dataset, {}
+
+
+def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
+    from lerobot_condground import __version__
+
+    payload = {"env": asdict(cfg.env) | {"features": None}, "seed": cfg.seed, "version": __version__, **state}
+    tmp = root / (PROVENANCE_FILE + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=1, default=str))
+    os.replace(tmp, root / PROVENANCE_FILE)
+
+
+def record(cfg: RecordConfig) -> dict:
+    """Records until the dataset holds `num_episodes` expert episodes. Returns counts for the report."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from tqdm import tqdm
+
+    from lerobot_condground.envs.expert import ScriptedExpert
+
+    features = dataset_features(cfg.env, cfg.dataset.video)
+    env = make_recording_env(cfg.env)  # validates the condition and its layout before anything is written
+    expert = ScriptedExpert()
+    root = _dataset_root(cfg.dataset)
+    dataset, previous = _open_dataset(cfg, root, features)
+    have = dataset.meta.total_episodes
+    state = {
+        "next_seed": previous.get("next_seed", cfg.seed),
+        "episode_seeds": previous.get("episode_seeds", []),
+        "failed_seeds": previous.get("failed_seeds", []),
+    }
+    if have:
+        logging.info("Resuming %s: %d episodes already recorded", root, have)
+    # Counts of this run only: what the closing line reports.
+    run_stages: Counter = Counter()
+    attempts = successes = consecutive_failures = 0
+    bar = tqdm(total=cfg.dataset.num_episodes, initial=have, desc=f"record {cfg.env.task} {cfg.env.condition}",
+               unit="ep", disable=not cfg.progress)
+    try:
+        while have < cfg.dataset.num_episodes:
+            seed = state["next_seed"]
+            state["next_seed"] += 1
+            frames: list[dict] = []
+            info = run_expert_episode(
+                env, expert, seed, cfg.env.episode_length,
+                on_step=lambda obs, action, phase: frames.append(
+                    episode_frames(obs, action, phase, env.task_description)
+                ),
+            )
+            attempts += 1
+            run_stages[int(info["stage"])] += 1
+            if not info["is_success"]:
+                state["failed_seeds"].append(seed)
+                consecutive_failures += 1
+                if consecutive_failures >= cfg.max_consecutive_failures:
+                    raise RuntimeError(
+                        f"The expert failed {consecutive_failures} episodes in a row (last seed {seed}); "
+                        f"the environment is broken for task={cfg.env.task} condition={cfg.env.condition}"
+                    )
+                continue
+            consecutive_failures = 0
+            successes += 1
+            for frame in frames:
+                dataset.add_frame(frame)
+            dataset.save_episode()
+            state["episode_seeds"].append(seed)
+            have += 1
+            bar.update(1)
+            if have % cfg.dataset.checkpoint_every == 0 and have < cfg.dataset.num_episodes:
+                dataset.finalize()
+                _write_provenance(root, cfg, state)
+                dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root)
+    finally:
+        bar.close()
+        # Whatever happened, what was saved is closed and readable.
+        dataset.finalize()
+        _write_provenance(root, cfg, state)
+        env.close()
+    if cfg.dataset.push_to_hub:
+        LeRobotDataset(cfg.dataset.repo_id, root=root).push_to_hub(private=cfg.dataset.private)
+    return {"attempts": attempts, "successes": successes, "stages": dict(run_stages), "root": str(root),
+            "total_episodes": have}
+
+
+def format_summary(result: dict) -> str:
+    from lerobot_condground.envs.stages import STAGES
+
+    stage_counts = ", ".join(f"{name}={result['stages'].get(i, 0)}" for i, name in enumerate(STAGES))
+    return f"expert success: {result['successes']}/{result['attempts']}\nstages reached: {stage_counts}"

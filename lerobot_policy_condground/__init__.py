@@ -1,0 +1,1 @@
+import lerobot_condground  # noqa: F401  (LeRobot discovers plugins by distribution name and imports this module)
