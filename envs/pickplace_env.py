@@ -227,7 +227,7 @@ class PickPlaceEnv(gym.Env):
         if self.segmentation:
             obs["segmentation"] = self.render_segmentation()
         if self.prompts:
-            obs.update(self._prompt_crops)
+            obs.update({key: crop.copy() for key, crop in self._prompt_crops.items()})
         return obs
 
     def _info(self) -> dict:

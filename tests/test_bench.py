@@ -1,0 +1,14 @@
+import json
+
+from conftest import run_cli
+
+
+def test_bench_json_reports_every_figure():
+    out = run_cli("condground", "bench", "--json", "--seconds=0.3", "--record_episodes=1",
+                  "--observation_height=96", "--observation_width=128")
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    for key in ("physics_steps_per_s", "render_fps", "env_steps_per_s", "env_steps_per_s_with_segmentation",
+                "env_steps_per_s_expert", "record_frames_per_s"):
+        assert result[key] > 0, key
+    assert result["resolution"] == [96, 128]
+    assert result["physics_steps_per_s"] > result["env_steps_per_s"]

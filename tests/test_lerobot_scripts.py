@@ -1,0 +1,59 @@
+"""LeRobot's stock console scripts resolve the plugin's env type with no extra flag."""
+
+import json
+
+import pytest
+from conftest import read_json, run_cli
+
+TINY_ACT = [
+    "--policy.type=act", "--policy.device=cpu", "--policy.push_to_hub=false",
+    "--policy.pretrained_backbone_weights=null", "--policy.dim_model=64", "--policy.n_heads=2",
+    "--policy.dim_feedforward=128", "--policy.n_encoder_layers=1", "--policy.n_decoder_layers=1",
+    "--policy.chunk_size=10", "--policy.n_action_steps=10",
+]
+
+
+@pytest.fixture(scope="module")
+def stock_act_checkpoint(recorded_dataset, tmp_path_factory):
+    """A stock ACT trained 2 steps by lerobot-train on our dataset, with lerobot-train's own periodic env eval."""
+    out = tmp_path_factory.mktemp("train") / "run"
+    run_cli(
+        "lerobot-train", *TINY_ACT, "--dataset.repo_id=local/test_full_mixed", f"--dataset.root={recorded_dataset}",
+        "--batch_size=2", "--steps=2", "--save_freq=2", "--log_freq=1", "--num_workers=0",
+        "--env.type=condground", "--env.task=PickPlaceRandomBin-v0", "--env.condition=full_mixed",
+        "--env.episode_length=8", "--env_eval_freq=2", "--eval.n_episodes=1", "--eval.batch_size=1",
+        f"--output_dir={out}", "--wandb.enable=false",
+    )
+    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    config = read_json(ckpt / "config.json")
+    assert config["type"] == "act"
+    # Label columns reach the policy's input features only as unused STATE entries, never as cameras.
+    visual = [k for k, f in config["input_features"].items() if f["type"] == "VISUAL"]
+    assert visual == ["observation.images.top"]
+    return ckpt
+
+
+@pytest.mark.parametrize("async_envs", [True, False])
+def test_stock_lerobot_eval_runs_our_env(stock_act_checkpoint, tmp_path, async_envs):
+    out = tmp_path / "eval"
+    run_cli(
+        "lerobot-eval", f"--policy.path={stock_act_checkpoint}", "--env.type=condground",
+        "--env.task=PickPlaceFixedBin-v0", "--env.condition=object_shape_2", "--env.episode_length=15",
+        "--eval.n_episodes=2", "--eval.batch_size=2", f"--eval.use_async_envs={str(async_envs).lower()}",
+        f"--output_dir={out}",
+    )
+    info = json.loads((out / "eval_info.json").read_text())
+    metrics = info["per_task"][0]["metrics"]
+    assert len(metrics["max_rewards"]) == 2
+    # The reward is the stage index, so max reward is the stage reached (0..3).
+    assert all(r in (0.0, 1.0, 2.0, 3.0) for r in metrics["max_rewards"])
+    assert info["overall"]["n_episodes"] == 2
+    assert "condground" in info["per_group"]
+
+
+def test_unknown_condition_is_refused_by_lerobot_eval(stock_act_checkpoint, tmp_path):
+    out = run_cli(
+        "lerobot-eval", f"--policy.path={stock_act_checkpoint}", "--env.type=condground",
+        "--env.condition=object_color_7", "--eval.n_episodes=1", f"--output_dir={tmp_path}", check=False,
+    )
+    assert out.returncode != 0 and "Unknown condition 'object_color_7'" in out.stderr

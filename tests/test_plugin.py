@@ -1,0 +1,44 @@
+import subprocess
+import sys
+from importlib.metadata import distribution
+
+from conftest import run_cli
+
+
+def test_distribution_name_keeps_underscores_for_lerobot_discovery():
+    assert distribution("lerobot_policy_condground").metadata["Name"] == "lerobot_policy_condground"
+
+
+def test_lerobot_discovers_the_plugin_and_the_import_stays_cheap():
+    code = (
+        "import sys\n"
+        "from lerobot.utils.import_utils import register_third_party_plugins\n"
+        "register_third_party_plugins()\n"
+        "from lerobot.envs.configs import EnvConfig\n"
+        "import gymnasium as gym\n"
+        "assert 'condground' in EnvConfig.get_known_choices(), EnvConfig.get_known_choices()\n"
+        "assert 'gym_condground/PickPlaceRandomBin-v0' in gym.registry\n"
+        "assert 'lerobot_condground' in sys.modules\n"
+        "assert 'mujoco' not in sys.modules and 'cv2' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_subpackages_map_to_the_top_level_pillars():
+    import lerobot_condground.envs as envs
+    import lerobot_condground.policies as policies
+    import lerobot_condground.processors as processors
+
+    for module, folder in ((envs, "envs"), (policies, "policies"), (processors, "processors")):
+        assert module.__file__.replace("\\", "/").endswith(f"/{folder}/__init__.py")
+
+
+def test_cli_help_lists_commands_and_flags():
+    out = run_cli("condground", "--help").stdout
+    for command in ("record", "bench", "quickstart"):
+        assert command in out
+    record_help = run_cli("condground", "record", "--help").stdout
+    for flag in ("--env.task", "--env.condition", "--dataset.repo_id", "--dataset.root", "--dataset.num_episodes"):
+        assert flag in record_help
+    bad = run_cli("condground", "recrod", check=False)
+    assert bad.returncode == 2 and "unknown command 'recrod'" in bad.stderr

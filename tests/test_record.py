@@ -1,0 +1,101 @@
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from conftest import BIN, read_json, run_cli
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_condground.envs.assets import COLORS
+from lerobot_condground.envs.robot import MOTOR_NAMES
+from lerobot_condground.record import PROVENANCE_FILE
+
+
+def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_dataset):
+    ds = LeRobotDataset("local/test_full_mixed", root=recorded_dataset)
+    assert ds.meta.total_episodes == 2 and ds.fps == 20
+    assert ds.meta.features["observation.state"]["names"] == list(MOTOR_NAMES)
+    assert ds.meta.video_keys == ["observation.images.top"]
+    info = read_json(recorded_dataset / PROVENANCE_FILE)
+    assert info["env"]["condition"] == "full_mixed" and len(info["episode_seeds"]) == 2
+    for ep in range(2):
+        start = ds.meta.episodes["dataset_from_index"][ep]
+        end = ds.meta.episodes["dataset_to_index"][ep]
+        phases = np.array([int(ds[i]["observation.phase"]) for i in range(start, end)])
+        assert phases[0] == 0 and phases[-1] == 1 and np.all(np.diff(phases) >= 0)
+        switch = start + int(np.argmax(phases))
+        for idx, color in ((start, "red"), (switch - 1, "red"), (switch + 5, "blue")):
+            item = ds[idx]
+            mask = item["observation.mask.relevant"].numpy().astype(bool)
+            assert mask.sum() > 20
+            rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)[mask].mean(axis=0)
+            assert np.argmax(rgb) == np.argmax(COLORS[color]), (idx, rgb)
+        item = ds[start]
+        competitors = item["observation.mask.competitors"].numpy()
+        assert set(np.unique(competitors)) == {0, 3, 4, 5, 6, 7, 8}
+        assert not np.any(competitors.astype(bool) & item["observation.mask.relevant"].numpy().astype(bool))
+        for key, color in (("observation.prompt.object", "red"), ("observation.prompt.receptacle", "blue")):
+            crop = item[key].numpy().astype(float)
+            assert crop.shape == (64, 64, 3)
+            assert np.argmax(crop[20:44, 20:44].reshape(-1, 3).mean(axis=0)) == np.argmax(COLORS[color])
+        assert item["task"] == "Pick the red cube and place it in the blue bowl."
+
+
+def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
+    root = tmp_path / "ds"
+    common = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/resume", f"--dataset.root={root}",
+              "--progress=false", "--env.observation_height=96", "--env.observation_width=128"]
+    run_cli("condground", "record", *common, "--dataset.num_episodes=1")
+    out = run_cli("condground", "record", *common, "--dataset.num_episodes=2")
+    assert "expert success: 1/1" in out.stdout
+    ds = LeRobotDataset("local/resume", root=root)
+    assert ds.meta.total_episodes == 2 and len(ds) == ds.meta.total_frames
+    seeds = read_json(root / PROVENANCE_FILE)["episode_seeds"]
+    assert len(set(seeds)) == 2
+    bad = run_cli("condground", "record", *common, "--dataset.num_episodes=3", "--env.condition=full_mixed", check=False)
+    assert bad.returncode != 0
+    assert "already holds a dataset recorded differently" in bad.stderr and "env.condition 'clean' != 'full_mixed'" in bad.stderr
+    assert LeRobotDataset("local/resume", root=root).meta.total_episodes == 2
+
+
+def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
+    root = tmp_path / "ds"
+    args = [str(BIN / "condground"), "record", "--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/kill",
+            f"--dataset.root={root}", "--dataset.num_episodes=50", "--progress=false",
+            "--env.observation_height=96", "--env.observation_width=128"]
+    proc = subprocess.Popen(args, env={**os.environ, "MUJOCO_GL": "egl"}, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline:
+            path = root / PROVENANCE_FILE
+            if path.exists() and len(read_json(path)["episode_seeds"]) >= 2:
+                break
+            assert proc.poll() is None, "recording ended early"
+            time.sleep(0.2)
+        else:
+            pytest.fail("no checkpoint within 300 s")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    ds = LeRobotDataset("local/kill", root=root)
+    assert ds.meta.total_episodes >= 2
+    ds[len(ds) - 1]  # the last frame decodes
+    out = run_cli("condground", "record", *args[2:-4], "--dataset.num_episodes=" + str(ds.meta.total_episodes + 1),
+                  "--env.observation_height=96", "--env.observation_width=128")
+    assert "expert success: 1/1" in out.stdout
+
+
+def test_bad_record_flags_fail_before_any_work(tmp_path):
+    root = tmp_path / "never"
+    for flag, fragment in (
+        ("--env.condition=object_color_9", "Unknown condition 'object_color_9'"),
+        ("--env.observation_height=1000", "Image height 1000 cannot be rendered"),
+        ("--env.task=PickPlace-v0", "Unknown task 'PickPlace-v0'"),
+    ):
+        out = run_cli("condground", "record", flag, f"--dataset.root={root}", check=False)
+        assert out.returncode != 0 and fragment in out.stderr + out.stdout, out.stderr[-2000:]
+        assert not root.exists()
