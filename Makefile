@@ -16,11 +16,15 @@ PYTHON312 := $(shell for p in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python
 
 setup: system-deps $(STAMP)
 
-# Headless MuJoCo rendering needs EGL with Mesa's software driver.
+# Headless MuJoCo rendering needs EGL with Mesa's software driver; torchcodec (LeRobot's video
+# decoder) needs FFmpeg's shared libraries, else LeRobot falls back to slower PyAV with a traceback.
+SYSTEM_LIBS := libEGL_mesa.so.0 libavdevice.so.59 libavfilter.so.8
+SYSTEM_PKGS := libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libavutil57 libavcodec59 libavformat59 libavdevice59 libavfilter8 libswscale6 libswresample4
 system-deps:
-	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0'; then \
-		echo "Installing EGL/Mesa for headless rendering"; \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 >/dev/null; \
+	@missing=0; for lib in $(SYSTEM_LIBS); do ldconfig -p | grep -q "$$lib" || missing=1; done; \
+	if [ $$missing = 1 ]; then \
+		echo "Installing system libraries: $(SYSTEM_PKGS)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(SYSTEM_PKGS) >/dev/null; \
 	fi
 
 $(STAMP): pyproject.toml

@@ -117,8 +117,7 @@ class PickPlaceEnv(gym.Env):
         self.data.ctrl[6] = 0.0
         mujoco.mj_forward(self.model, self.data)
         # Let objects settle on the table before the first observation.
-        for _ in range(50):
-            mujoco.mj_step(self.model, self.data)
+        mujoco.mj_step(self.model, self.data, nstep=50)
         self.tracker.reset()
         self.tracker.update(self.data)
         self._prompt_crops = self._render_prompt_crops() if self.prompts else {}

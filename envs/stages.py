@@ -50,13 +50,12 @@ class StageTracker:
         return 3 if self.place else 2 if self.lift else 1 if self.pick else 0
 
     def update(self, data: mujoco.MjData) -> None:
-        touching = {1: set(), 2: set()}
-        for c in data.contact[: data.ncon]:
-            for g_finger, g_other in ((c.geom1, c.geom2), (c.geom2, c.geom1)):
-                side = self.finger_of_geom[g_finger]
-                label = self.geom_label[g_other]
-                if side and label:
-                    touching[side].add(int(label))
+        g1, g2 = data.contact.geom1[: data.ncon], data.contact.geom2[: data.ncon]
+        touching = {}
+        for side in (1, 2):
+            labels = np.concatenate([self.geom_label[g2][self.finger_of_geom[g1] == side],
+                                     self.geom_label[g1][self.finger_of_geom[g2] == side]])
+            touching[side] = set(labels[labels > 0].tolist())
         held = touching[1] & touching[2]
         self.held = min(held) if held else 0
         target_touched = 1 in touching[1] or 1 in touching[2]

@@ -7,6 +7,7 @@ Each figure is measured in the same process, one after the other, on the same sc
 from __future__ import annotations
 
 import json
+import statistics
 import shutil
 import tempfile
 import time
@@ -21,8 +22,9 @@ class BenchConfig:
     condition: str = "full_mixed"
     observation_height: int = 240
     observation_width: int = 320
-    # Seconds spent on each timed measurement.
+    # Seconds spent on each timed measurement, split over `rounds` alternating rounds.
     seconds: float = 3.0
+    rounds: int = 5
     # Expert episodes recorded for the recording throughput.
     record_episodes: int = 3
     # Print one JSON object instead of a table.
@@ -30,15 +32,17 @@ class BenchConfig:
 
 
 def _rate(fn, seconds: float) -> float:
-    fn()  # warm-up: first render, first layout
     count, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         count += fn()
     return count / (time.perf_counter() - start)
 
 
-def _env_steps(env, policy, seconds: float) -> float:
+def _env_stepper(env, policy):
+    """A callable that advances `env` one step with `policy`, resetting with a new seed when done."""
     state = {"obs": env.reset(seed=0)[0], "seed": 0}
+    if hasattr(policy, "reset"):
+        policy.reset(env)
 
     def step() -> int:
         obs, _, terminated, truncated, _ = env.step(policy(state["obs"]))
@@ -50,9 +54,19 @@ def _env_steps(env, policy, seconds: float) -> float:
                 policy.reset(env)
         return 1
 
-    if hasattr(policy, "reset"):
-        policy.reset(env)
-    return _rate(step, seconds)
+    return step
+
+
+def _interleaved_rates(measures: dict, seconds: float, rounds: int) -> dict[str, list[float]]:
+    """Rates of every measure, taken in alternating rounds so that load changes on the machine hit
+    all of them alike; ratios are then taken round by round."""
+    for fn in measures.values():
+        fn()  # warm-up: first render, first layout
+    rates: dict[str, list[float]] = {name: [] for name in measures}
+    for _ in range(rounds):
+        for name, fn in measures.items():
+            rates[name].append(_rate(fn, seconds / rounds))
+    return rates
 
 
 def run_bench(cfg: BenchConfig) -> dict:
@@ -76,28 +90,38 @@ def run_bench(cfg: BenchConfig) -> dict:
         env._render_rgb("top")
         return 1
 
-    results = {
-        "task": cfg.task,
-        "condition": cfg.condition,
-        "resolution": [cfg.observation_height, cfg.observation_width],
-        "physics_steps_per_s": _rate(physics, cfg.seconds),
-        "physics_substeps_per_env_step": env.n_substeps,
-        "render_fps": _rate(render, cfg.seconds),
-    }
     rng = np.random.default_rng(0)
     random_policy = lambda obs: rng.uniform(env.action_space.low, env.action_space.high).astype(np.float32)  # noqa: E731
-    results["env_steps_per_s"] = _env_steps(env, random_policy, cfg.seconds)
 
     class Expert(ScriptedExpert):
         def __call__(self, obs):
             return self.act(obs)
 
-    results["env_steps_per_s_expert"] = _env_steps(env, Expert(), cfg.seconds)
-    env.close()
     seg_env = PickPlaceEnv(task=cfg.task, condition=cfg.condition, segmentation=True, **size)
-    results["env_steps_per_s_with_segmentation"] = _env_steps(seg_env, Expert(), cfg.seconds)
-    seg_env.close()
-    results["env_over_render_ratio"] = results["env_steps_per_s"] / results["render_fps"]
+    expert_env = PickPlaceEnv(task=cfg.task, condition=cfg.condition, **size)
+    rates = _interleaved_rates(
+        {
+            "physics_steps_per_s": physics,
+            "render_fps": render,
+            "env_steps_per_s": _env_stepper(env, random_policy),
+            "env_steps_per_s_expert": _env_stepper(expert_env, Expert()),
+            "env_steps_per_s_with_segmentation": _env_stepper(seg_env, Expert()),
+        },
+        cfg.seconds,
+        cfg.rounds,
+    )
+    for e in (env, expert_env, seg_env):
+        e.close()
+    results = {
+        "task": cfg.task,
+        "condition": cfg.condition,
+        "resolution": [cfg.observation_height, cfg.observation_width],
+        "physics_substeps_per_env_step": env.n_substeps,
+        **{name: statistics.median(values) for name, values in rates.items()},
+        "env_over_render_ratio": statistics.median(
+            e / r for e, r in zip(rates["env_steps_per_s"], rates["render_fps"])
+        ),
+    }
 
     tmp = tempfile.mkdtemp(prefix="condground_bench_")
     try:
@@ -123,5 +147,5 @@ def run_bench(cfg: BenchConfig) -> dict:
     else:
         width = max(len(k) for k in results)
         for key, value in results.items():
-            print(f"{key:<{width}}  {value:.1f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+            print(f"{key:<{width}}  {value:.2f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
     return results

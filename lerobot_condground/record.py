@@ -1,11 +1,9 @@
 """`condground record`: scripted-expert demonstrations written to a LeRobotDataset (v3).
 
-Per frame: camera frames, `observation.state`, `action`, the phase label `observation.phase`
-(0 acquire the object, 1 transport and place), lossless masks `observation.mask.relevant` (the
-phase-relevant entity, 0/1) and `observation.mask.competitors` (segmentation label of the competitor
-at each pixel, 0 = none), and the positionless prompt crops `observation.prompt.object` and
-`observation.prompt.receptacle`. Labels are plain numeric `observation.*` features: they survive
-LeRobot's batch conversion, and a stock policy reads only `observation.state` and its cameras.
+Per frame: camera frames, `observation.state`, `action`, and the label features of
+`lerobot_condground.labels` (phase, lossless segmentation, prompt crops). Per episode, the
+provenance file `meta/condground_record.json` keeps the seed and which competitor each
+segmentation label is.
 
 Only successful expert episodes are kept; a failed one is retried with the next seed and counted.
 The dataset is closed after every `checkpoint_every` episodes, so a crash loses at most the episodes
@@ -25,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.envs.configs import CondGroundEnvConfig
+from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION
 
 PROVENANCE_FILE = "meta/condground_record.json"
-PHASE_RELEVANT_LABEL = {0: 1, 1: 2}  # phase -> segmentation label of the entity that matters
 
 
 @dataclass
@@ -71,16 +69,14 @@ def dataset_features(env_cfg: CondGroundEnvConfig, video: bool) -> dict:
     h, w = env_cfg.observation_height, env_cfg.observation_width
     image = {"dtype": "video" if video else "image", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
     crop = {"dtype": "uint8", "shape": (PROMPT_SIZE, PROMPT_SIZE, 3), "names": ["height", "width", "channels"]}
-    mask = {"dtype": "uint8", "shape": (h, w), "names": ["height", "width"]}
     features = {
         "observation.images.top": image,
         "observation.state": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
         "action": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
-        "observation.phase": {"dtype": "int64", "shape": (1,), "names": ["phase"]},
-        "observation.mask.relevant": mask,
-        "observation.mask.competitors": mask,
-        "observation.prompt.object": crop,
-        "observation.prompt.receptacle": crop,
+        OBS_PHASE: {"dtype": "int64", "shape": (1,), "names": ["phase"]},
+        OBS_SEGMENTATION: {"dtype": "uint8", "shape": (h, w), "names": ["height", "width"]},
+        OBS_PROMPT_OBJECT: crop,
+        OBS_PROMPT_RECEPTACLE: crop,
     }
     if env_cfg.wrist_camera:
         features["observation.images.wrist"] = dict(image)
@@ -118,16 +114,14 @@ def run_expert_episode(env, expert, seed: int, max_steps: int, on_step=None) -> 
 
 
 def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict:
-    seg = obs["segmentation"]
     frame = {
         "observation.images.top": obs["pixels"]["top"],
         "observation.state": obs["agent_pos"].astype(np.float32),
         "action": action.astype(np.float32),
-        "observation.phase": np.array([phase], dtype=np.int64),
-        "observation.mask.relevant": (seg == PHASE_RELEVANT_LABEL[phase]).astype(np.uint8),
-        "observation.mask.competitors": np.where(seg >= 3, seg, 0).astype(np.uint8),
-        "observation.prompt.object": obs["prompt_object"],
-        "observation.prompt.receptacle": obs["prompt_receptacle"],
+        OBS_PHASE: np.array([phase], dtype=np.int64),
+        OBS_SEGMENTATION: obs["segmentation"],
+        OBS_PROMPT_OBJECT: obs["prompt_object"],
+        OBS_PROMPT_RECEPTACLE: obs["prompt_receptacle"],
         "task": task,
     }
     if "wrist" in obs["pixels"]:
@@ -166,11 +160,11 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
                 f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
                 f"choose another --dataset.root or record with the same settings to resume it"
             )
-        dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root)
+        dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=True)
         return dataset, previous
     dataset = LeRobotDataset.create(
         cfg.dataset.repo_id, fps=cfg.env.fps, features=features, root=root, robot_type="ur3e_sim",
-        use_videos=cfg.dataset.video,
+        use_videos=cfg.dataset.video, streaming_encoding=True,
     )
     return dataset, {}
 
@@ -199,7 +193,7 @@ def record(cfg: RecordConfig) -> dict:
     have = dataset.meta.total_episodes
     state = {
         "next_seed": previous.get("next_seed", cfg.seed),
-        "episode_seeds": previous.get("episode_seeds", []),
+        "episodes": previous.get("episodes", []),
         "failed_seeds": previous.get("failed_seeds", []),
     }
     if have:
@@ -236,13 +230,13 @@ def record(cfg: RecordConfig) -> dict:
             for frame in frames:
                 dataset.add_frame(frame)
             dataset.save_episode()
-            state["episode_seeds"].append(seed)
+            state["episodes"].append({"seed": seed, "task": env.task_description, "entities": env.entity_table()})
             have += 1
             bar.update(1)
             if have % cfg.dataset.checkpoint_every == 0 and have < cfg.dataset.num_episodes:
                 dataset.finalize()
                 _write_provenance(root, cfg, state)
-                dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root)
+                dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=True)
     finally:
         bar.close()
         # Whatever happened, what was saved is closed and readable.

@@ -1,4 +1,5 @@
 import subprocess
+from pathlib import Path
 import sys
 from importlib.metadata import distribution
 
@@ -42,3 +43,14 @@ def test_cli_help_lists_commands_and_flags():
         assert flag in record_help
     bad = run_cli("condground", "recrod", check=False)
     assert bad.returncode == 2 and "unknown command 'recrod'" in bad.stderr
+
+
+def test_example_runs(tmp_path):
+    import cv2
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "frame.png"
+    proc = subprocess.run([sys.executable, str(root / "examples" / "run_expert.py"), "--out", str(out)],
+                          capture_output=True, text=True, check=True)
+    assert "stage reached: 3" in proc.stdout and "success: True" in proc.stdout
+    assert cv2.imread(str(out)).shape == (240, 640, 3)

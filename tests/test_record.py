@@ -11,6 +11,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_condground.envs.assets import COLORS
 from lerobot_condground.envs.robot import MOTOR_NAMES
+from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION, phase_masks
 from lerobot_condground.record import PROVENANCE_FILE
 
 
@@ -19,25 +20,31 @@ def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_
     assert ds.meta.total_episodes == 2 and ds.fps == 20
     assert ds.meta.features["observation.state"]["names"] == list(MOTOR_NAMES)
     assert ds.meta.video_keys == ["observation.images.top"]
-    info = read_json(recorded_dataset / PROVENANCE_FILE)
-    assert info["env"]["condition"] == "full_mixed" and len(info["episode_seeds"]) == 2
+    provenance = read_json(recorded_dataset / PROVENANCE_FILE)
+    assert provenance["env"]["condition"] == "full_mixed" and len(provenance["episodes"]) == 2
     for ep in range(2):
         start = ds.meta.episodes["dataset_from_index"][ep]
         end = ds.meta.episodes["dataset_to_index"][ep]
-        phases = np.array([int(ds[i]["observation.phase"]) for i in range(start, end)])
+        entities = provenance["episodes"][ep]["entities"]
+        assert sorted(e["match"] for e in entities[2:]) == ["color", "color", "neither", "neither", "shape", "shape"]
+        phases = np.array([int(ds[i][OBS_PHASE]) for i in range(start, end)])
         assert phases[0] == 0 and phases[-1] == 1 and np.all(np.diff(phases) >= 0)
         switch = start + int(np.argmax(phases))
         for idx, color in ((start, "red"), (switch - 1, "red"), (switch + 5, "blue")):
             item = ds[idx]
-            mask = item["observation.mask.relevant"].numpy().astype(bool)
-            assert mask.sum() > 20
-            rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)[mask].mean(axis=0)
+            relevant, competitors = phase_masks(item[OBS_SEGMENTATION], item[OBS_PHASE])
+            relevant = relevant.numpy()
+            assert relevant.sum() > 20 and not (relevant & competitors.numpy()).any()
+            rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)[relevant].mean(axis=0)
             assert np.argmax(rgb) == np.argmax(COLORS[color]), (idx, rgb)
         item = ds[start]
-        competitors = item["observation.mask.competitors"].numpy()
-        assert set(np.unique(competitors)) == {0, 3, 4, 5, 6, 7, 8}
-        assert not np.any(competitors.astype(bool) & item["observation.mask.relevant"].numpy().astype(bool))
-        for key, color in (("observation.prompt.object", "red"), ("observation.prompt.receptacle", "blue")):
+        seg = item[OBS_SEGMENTATION].numpy()
+        assert set(np.unique(seg)) == set(range(9))
+        rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)
+        for entity in entities:
+            mean = rgb[seg == entity["label"]].mean(axis=0)
+            assert np.argmax(mean) == np.argmax(COLORS[entity["color"]]) or entity["color"] == "yellow", entity
+        for key, color in ((OBS_PROMPT_OBJECT, "red"), (OBS_PROMPT_RECEPTACLE, "blue")):
             crop = item[key].numpy().astype(float)
             assert crop.shape == (64, 64, 3)
             assert np.argmax(crop[20:44, 20:44].reshape(-1, 3).mean(axis=0)) == np.argmax(COLORS[color])
@@ -53,7 +60,7 @@ def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
     assert "expert success: 1/1" in out.stdout
     ds = LeRobotDataset("local/resume", root=root)
     assert ds.meta.total_episodes == 2 and len(ds) == ds.meta.total_frames
-    seeds = read_json(root / PROVENANCE_FILE)["episode_seeds"]
+    seeds = [e["seed"] for e in read_json(root / PROVENANCE_FILE)["episodes"]]
     assert len(set(seeds)) == 2
     bad = run_cli("condground", "record", *common, "--dataset.num_episodes=3", "--env.condition=full_mixed", check=False)
     assert bad.returncode != 0
@@ -72,7 +79,7 @@ def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
     try:
         while time.time() < deadline:
             path = root / PROVENANCE_FILE
-            if path.exists() and len(read_json(path)["episode_seeds"]) >= 2:
+            if path.exists() and len(read_json(path)["episodes"]) >= 2:
                 break
             assert proc.poll() is None, "recording ended early"
             time.sleep(0.2)
