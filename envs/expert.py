@@ -172,11 +172,10 @@ class ScriptedExpert:
         return action
 
     def _advance(self) -> None:
-        order = PHASES
-        nxt = order[min(order.index(self.phase) + 1, len(order) - 1)]
-        if self.phase == "lift" and self.env.tracker.held != 1 and self.retries < MAX_RETRIES:
-            self.retries += 1
-            nxt = "approach"
         if self.phase == "done":
             return
-        self._start(nxt)
+        if self.phase == "lift" and self.env.tracker.held != 1 and self.retries < MAX_RETRIES:
+            self.retries += 1
+            self._start("approach")
+            return
+        self._start(PHASES[PHASES.index(self.phase) + 1])

@@ -17,7 +17,7 @@ import json
 import logging
 import os
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,8 @@ from lerobot_condground.envs.configs import CondGroundEnvConfig
 from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION
 
 PROVENANCE_FILE = "meta/condground_record.json"
+PROVENANCE_ENV_KEYS = ("task", "condition", "counterbalanced", "fps", "observation_height", "observation_width",
+                       "wrist_camera")
 
 
 @dataclass
@@ -172,7 +174,8 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
 def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
     from lerobot_condground import __version__
 
-    payload = {"env": asdict(cfg.env) | {"features": None}, "seed": cfg.seed, "version": __version__, **state}
+    env = {key: getattr(cfg.env, key) for key in PROVENANCE_ENV_KEYS}
+    payload = {"env": env, "seed": cfg.seed, "version": __version__, **state}
     tmp = root / (PROVENANCE_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=str))
     os.replace(tmp, root / PROVENANCE_FILE)
