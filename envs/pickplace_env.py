@@ -173,12 +173,12 @@ class PickPlaceEnv(gym.Env):
             for e in self.layout.entities
         ]
 
-    def render_segmentation(self, camera: str = "top") -> np.ndarray:
+    def render_segmentation(self, camera: str = "top", scene_option: mujoco.MjvOption | None = None) -> np.ndarray:
         """Entity labels per pixel (uint8), from MuJoCo's segmentation rendering."""
         r = self._get_renderer()
         r.enable_segmentation_rendering()
         try:
-            r.update_scene(self.data, camera=camera)
+            r.update_scene(self.data, camera=camera, scene_option=scene_option)
             seg = r.render()
         finally:
             r.disable_segmentation_rendering()
@@ -239,16 +239,7 @@ class PickPlaceEnv(gym.Env):
         option.geomgroup[robot.ARM_GROUP] = 0
         option.geomgroup[robot.GRIPPER_GROUP] = 0
         rgb = self._render_rgb("top", option)
-        r = self._get_renderer()
-        r.enable_segmentation_rendering()
-        try:
-            r.update_scene(self.data, camera="top", scene_option=option)
-            seg = r.render()
-        finally:
-            r.disable_segmentation_rendering()
-        labels = np.zeros(seg.shape[:2], dtype=np.uint8)
-        is_geom = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] >= 0)
-        labels[is_geom] = self.tracker.geom_label[seg[..., 0][is_geom]]
+        labels = self.render_segmentation("top", option)
         return {
             "prompt_object": crop_entity(rgb, labels == 1),
             "prompt_receptacle": crop_entity(rgb, labels == 2),

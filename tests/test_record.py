@@ -54,12 +54,14 @@ def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_
 def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
     root = tmp_path / "ds"
     common = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/resume", f"--dataset.root={root}",
-              "--progress=false", "--env.observation_height=96", "--env.observation_width=128"]
+              "--progress=false", "--env.observation_height=96", "--env.observation_width=128", "--env.wrist_camera=true"]
     run_cli("condground", "record", *common, "--dataset.num_episodes=1")
     out = run_cli("condground", "record", *common, "--dataset.num_episodes=2")
     assert "expert success: 1/1" in out.stdout
     ds = LeRobotDataset("local/resume", root=root)
     assert ds.meta.total_episodes == 2 and len(ds) == ds.meta.total_frames
+    assert ds.meta.video_keys == ["observation.images.top", "observation.images.wrist"]
+    assert ds[len(ds) - 1]["observation.images.wrist"].shape == (3, 96, 128)
     seeds = [e["seed"] for e in read_json(root / PROVENANCE_FILE)["episodes"]]
     assert len(set(seeds)) == 2
     bad = run_cli("condground", "record", *common, "--dataset.num_episodes=3", "--env.condition=full_mixed", check=False)
