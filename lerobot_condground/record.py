@@ -256,4 +256,7 @@ def format_summary(result: dict) -> str:
     from lerobot_condground.envs.stages import STAGES
 
     stage_counts = ", ".join(f"{name}={result['stages'].get(i, 0)}" for i, name in enumerate(STAGES))
-    return f"expert success: {result['successes']}/{result['attempts']}\nstages reached: {stage_counts}"
+    line = f"expert success: {result['successes']}/{result['attempts']}"
+    if not result["attempts"]:
+        line += f" (the dataset already holds {result['total_episodes']} episodes)"
+    return f"{line}\nstages reached: {stage_counts}"
