@@ -196,7 +196,8 @@ def record(cfg: RecordConfig) -> dict:
     have = dataset.meta.total_episodes
     state = {
         "next_seed": previous.get("next_seed", cfg.seed),
-        "episodes": previous.get("episodes", []),
+        # Provenance is written ahead of the data; after a hard kill it may name one unsaved episode.
+        "episodes": previous.get("episodes", [])[:have],
         "failed_seeds": previous.get("failed_seeds", []),
     }
     if have:
@@ -230,15 +231,15 @@ def record(cfg: RecordConfig) -> dict:
                 continue
             consecutive_failures = 0
             successes += 1
+            state["episodes"].append({"seed": seed, "task": env.task_description, "entities": env.entity_table()})
+            _write_provenance(root, cfg, state)  # before the data, so a resumed run never reuses a seed
             for frame in frames:
                 dataset.add_frame(frame)
             dataset.save_episode()
-            state["episodes"].append({"seed": seed, "task": env.task_description, "entities": env.entity_table()})
             have += 1
             bar.update(1)
             if have % cfg.dataset.checkpoint_every == 0 and have < cfg.dataset.num_episodes:
                 dataset.finalize()
-                _write_provenance(root, cfg, state)
                 dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=True)
     finally:
         bar.close()

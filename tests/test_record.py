@@ -81,7 +81,8 @@ def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
     try:
         while time.time() < deadline:
             path = root / PROVENANCE_FILE
-            if path.exists() and len(read_json(path)["episodes"]) >= 2:
+            # Provenance runs one episode ahead of the data: 3 named means 2 saved and closed.
+            if path.exists() and len(read_json(path)["episodes"]) >= 3:
                 break
             assert proc.poll() is None, "recording ended early"
             time.sleep(0.2)
@@ -96,6 +97,9 @@ def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
     out = run_cli("condground", "record", *args[2:-4], "--dataset.num_episodes=" + str(ds.meta.total_episodes + 1),
                   "--env.observation_height=96", "--env.observation_width=128")
     assert "expert success: 1/1" in out.stdout
+    total = LeRobotDataset("local/kill", root=root).meta.total_episodes
+    seeds = [e["seed"] for e in read_json(root / PROVENANCE_FILE)["episodes"]]
+    assert len(seeds) == total and len(set(seeds)) == total
 
 
 def test_bad_record_flags_fail_before_any_work(tmp_path):
