@@ -129,3 +129,12 @@ def test_task_description_names_the_targets():
         assert env.task_description == f"Pick the {t.target_object.asset} and place it in the {t.target_receptacle.asset}."
         descriptions.add(env.task_description)
     assert len(descriptions) > 1
+
+
+def test_largest_resolution_and_wrist_camera_render():
+    env = PickPlaceEnv(observation_height=480, observation_width=640, wrist_camera=True, segmentation=True)
+    obs, _ = env.reset(seed=0)
+    assert obs["pixels"]["top"].shape == obs["pixels"]["wrist"].shape == (480, 640, 3)
+    assert obs["segmentation"].shape == (480, 640) and (obs["segmentation"] == 1).sum() > 100
+    assert not np.array_equal(obs["pixels"]["top"], obs["pixels"]["wrist"])
+    env.close()
