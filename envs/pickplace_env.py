@@ -10,6 +10,7 @@ Reward: the stage index reached so far (0 none, 1 pick, 2 lift, 3 place); `info[
 
 from __future__ import annotations
 
+import logging
 import os
 
 import cv2
@@ -24,9 +25,13 @@ from .layout import Layout, check_fits, sample_layout
 from .scene import MAX_RENDER_HEIGHT, MAX_RENDER_WIDTH, PHYSICS_DT, apply_layout, build_model, entity_body_name
 from .stages import StageTracker
 
+logger = logging.getLogger(__name__)
+
 DEFAULT_FPS = 20
 MIN_RENDER_SIDE = 64
 PROMPT_SIZE = 64
+_DIVERGENCE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+                        mujoco.mjtWarning.mjWARN_BADQACC)
 # "agent_pos" renders nothing: for expert checks and physics benchmarks.
 OBS_TYPES = ("pixels_agent_pos", "pixels", "agent_pos")
 
@@ -133,10 +138,17 @@ class PickPlaceEnv(gym.Env):
         action = np.clip(action, self.action_space.low, self.action_space.high)
         self.data.ctrl[:6] = action[:6]
         self.data.ctrl[6] = action[6] * robot.FINGER_TRAVEL
+        resets_before = self._divergence_resets()
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        # MuJoCo answers a diverging simulation by resetting the state in place; the episode cannot go
+        # on from there, so it is truncated and flagged instead of continuing from a teleported scene.
+        unstable = self._divergence_resets() > resets_before
+        if unstable:
+            logger.warning("Physics diverged at t=%.2f s (%s, %s); truncating the episode",
+                           self.data.time, self.task, self.condition.name)
         self.tracker.update(self.data)
         terminated = self.tracker.place
-        return self._observation(), float(self.tracker.stage), terminated, False, self._info()
+        return self._observation(), float(self.tracker.stage), terminated, unstable, self._info(unstable)
 
     def render(self):
         if self._last_frame is None:
@@ -229,8 +241,11 @@ class PickPlaceEnv(gym.Env):
             obs.update({key: crop.copy() for key, crop in self._prompt_crops.items()})
         return obs
 
-    def _info(self) -> dict:
-        return self.tracker.info(self.data)
+    def _divergence_resets(self) -> int:
+        return sum(self.data.warning[w].number for w in _DIVERGENCE_WARNINGS)
+
+    def _info(self, physics_unstable: bool = False) -> dict:
+        return {**self.tracker.info(self.data), "physics_unstable": physics_unstable}
 
     def _render_prompt_crops(self) -> dict[str, np.ndarray]:
         """Positionless appearance crops of the two targets, rendered with the robot hidden so they are

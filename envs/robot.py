@@ -34,6 +34,9 @@ HOME_QPOS = np.array([0.0, -1.75, 1.9, -1.72, -1.5708, 0.0])
 # UR3e limits: +-360 deg on every joint, elbow restricted to +-180 deg by self-collision.
 JOINT_RANGE = np.array([[-2 * math.pi, 2 * math.pi]] * 6)
 JOINT_RANGE[2] = (-math.pi, math.pi)
+# UR3e rated joint torques (Nm): the servos cannot exceed them, so a wild target (a random or broken
+# policy) moves the arm at a bounded acceleration instead of throwing the solver off.
+JOINT_TORQUE = (54.0, 54.0, 28.0, 12.0, 12.0, 12.0)
 
 # Robotiq 2F-85-like jaw: 85 mm stroke, each finger travels half of it.
 GRIPPER_STROKE = 0.085
@@ -100,6 +103,8 @@ def add_ur3e(spec: mujoco.MjSpec, base_pos=(0.0, 0.0, 0.0)) -> None:
         act = spec.add_actuator(name=f"{JOINT_NAMES[i]}_servo", target=JOINT_NAMES[i], trntype=mujoco.mjtTrn.mjTRN_JOINT)
         kp = 3000.0 if i < 3 else 800.0
         act.set_to_position(kp=kp, dampratio=1.0)
+        act.forcerange = [-JOINT_TORQUE[i], JOINT_TORQUE[i]]
+        act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         act.ctrlrange = list(JOINT_RANGE[i])
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         parent = body

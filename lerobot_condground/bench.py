@@ -80,7 +80,9 @@ def run_bench(cfg: BenchConfig) -> dict:
     size = dict(observation_height=cfg.observation_height, observation_width=cfg.observation_width)
     env = PickPlaceEnv(task=cfg.task, condition=cfg.condition, **size)
     env.reset(seed=0)
-    model, data = env.model, env.data
+    # Physics runs on its own copy of the settled scene, untouched by the stepping measures below.
+    model, data = env.model, mujoco.MjData(env.model)
+    mujoco.mj_copyData(data, model, env.data)
 
     def physics() -> int:
         mujoco.mj_step(model, data, nstep=100)

@@ -19,13 +19,12 @@ OBS_PROMPT_RECEPTACLE = "observation.prompt.receptacle"
 LABEL_KEYS = (OBS_SEGMENTATION, OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
 
 BACKGROUND, TARGET_OBJECT, TARGET_RECEPTACLE, FIRST_COMPETITOR = 0, 1, 2, 3
-PHASE_ACQUIRE, PHASE_PLACE = 0, 1
 
 
 def phase_masks(segmentation, phase):
     """(M_phi, M_d): the phase-relevant entity (object while acquiring, receptacle while placing) and
     the competitors. Works on numpy arrays and torch tensors; `phase` broadcasts over (..., H, W)."""
     relevant_label = TARGET_OBJECT + phase
-    if hasattr(relevant_label, "ndim") and relevant_label.ndim:
-        relevant_label = relevant_label.reshape(*relevant_label.shape, *([1] * 2))
+    if getattr(relevant_label, "ndim", 0):  # one phase per sample: broadcast over the image
+        relevant_label = relevant_label.reshape(*relevant_label.shape, 1, 1)
     return segmentation == relevant_label, segmentation >= FIRST_COMPETITOR

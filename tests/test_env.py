@@ -138,3 +138,14 @@ def test_largest_resolution_and_wrist_camera_render():
     assert obs["segmentation"].shape == (480, 640) and (obs["segmentation"] == 1).sum() > 100
     assert not np.array_equal(obs["pixels"]["top"], obs["pixels"]["wrist"])
     env.close()
+
+
+def test_a_diverging_simulation_truncates_the_episode_with_a_flag():
+    env = PickPlaceEnv(obs_type="agent_pos")
+    _, info = env.reset(seed=0)
+    assert info["physics_unstable"] is False
+    _, _, terminated, truncated, info = env.step(np.concatenate([env.joint_positions(), [0.0]]))
+    assert not truncated and not info["physics_unstable"]
+    env.data.qvel[-1] = 1e30  # what a blown-up solver leaves behind
+    _, _, terminated, truncated, info = env.step(np.concatenate([env.joint_positions(), [0.0]]))
+    assert truncated and info["physics_unstable"] and not terminated
