@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_condground.conditions import ROLES
+
 COLORS: dict[str, tuple[float, float, float]] = {
     # evaluation palette
     "red": (0.85, 0.12, 0.10),
@@ -109,7 +111,6 @@ RECEPTACLE_SHAPES: dict[str, ReceptacleShape] = {
 EVAL_RECEPTACLE_SHAPES = ("bowl", "square_bin", "hex_bin", "rect_tray")
 AUGMENTATION_RECEPTACLE_SHAPES = ("tri_bin", "pentagon_bin", "plate", "oct_bin")
 
-ROLES = ("object", "receptacle")
 POOLS = ("eval", "augmentation")
 
 

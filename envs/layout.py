@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_condground.conditions import ConditionSpec, check_task
+from lerobot_condground.conditions import MATCHES, ROLES, ConditionSpec, check_task
 
 from .assets import (
     OBJECT_SHAPES,
@@ -96,14 +96,14 @@ def choose_assets(spec: ConditionSpec, counterbalanced: bool, rng: np.random.Gen
             shape, color = default
         targets[role] = Asset(role, shape, color)
         out.append((targets[role], "target"))
-    for role in ("object", "receptacle"):
+    for role in ROLES:
         target = targets[role]
         other_shapes = [s for s in pool_shapes(role, "eval") if s != target.shape]
         other_colors = [c for c in colors if c != target.color]
         if counterbalanced:
             other_shapes = list(rng.permutation(other_shapes))
             other_colors = list(rng.permutation(other_colors))
-        for match in ("color", "shape", "neither"):
+        for match in MATCHES:
             for k in range(spec.count(role, match)):
                 if match == "color":
                     asset = Asset(role, other_shapes[k], target.color)
@@ -176,7 +176,7 @@ def _max_clearance(role: str) -> float:
 
 def check_fits(task: str, spec: ConditionSpec, counterbalanced: bool, seeds: int = 3) -> None:
     """Raises LayoutError before any work starts when the condition cannot be laid out."""
-    n = {role: 1 + sum(spec.count(role, m) for m in ("color", "shape", "neither")) for role in ("object", "receptacle")}
+    n = {role: 1 + sum(spec.count(role, m) for m in MATCHES) for role in ROLES}
     need = sum(n[role] * math.pi * (_max_clearance(role) + GAP / 2) ** 2 for role in n)
     # Area the disks can cover: the sector of centers grown by a typical clearance.
     grow = 0.06
