@@ -5,7 +5,8 @@ policy only reads `observation.state` and its cameras, so they are never fed to 
 not ask for them.
 
 `observation.segmentation` (H, W) uint8, lossless: 0 background and robot, 1 target object,
-2 target receptacle, 3.. competitors (their classes are in the dataset's provenance file).
+2 target receptacle, 3.. competitors (their classes are in the dataset's provenance file), 255
+synthetic competitors pasted by the copy-paste augmentation.
 `observation.phase` (1,) int64: 0 acquire the object, 1 transport and place.
 `observation.prompt.object` / `observation.prompt.receptacle` (64, 64, 3) uint8: positionless crops.
 """
@@ -19,6 +20,7 @@ OBS_PROMPT_RECEPTACLE = "observation.prompt.receptacle"
 LABEL_KEYS = (OBS_SEGMENTATION, OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
 
 BACKGROUND, TARGET_OBJECT, TARGET_RECEPTACLE, FIRST_COMPETITOR = 0, 1, 2, 3
+SYNTHETIC_DISTRACTOR = 255
 
 
 def phase_masks(segmentation, phase):
