@@ -9,6 +9,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_condground.conditions import ConditionSpec, check_task
+from lerobot_condground.labels import OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE
 
 from . import GYM_NAMESPACE
 
@@ -33,6 +34,9 @@ class CondGroundEnvConfig(EnvConfig):
     observation_height: int = 240
     observation_width: int = 320
     wrist_camera: bool = False
+    # Send the positionless prompt crops of the target object and receptacle with every observation
+    # (`observation.prompt.object` / `.receptacle`, as in recorded datasets); prompt policies need them.
+    prompts: bool = True
     render_mode: str = "rgb_array"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
@@ -65,6 +69,14 @@ class CondGroundEnvConfig(EnvConfig):
         if self.obs_type != "pixels":
             self.features["agent_pos"] = PolicyFeature(type=FeatureType.STATE, shape=(7,))
 
+    def get_env_processors(self):
+        # LeRobot passes extra env observations through as `observation.<key>`; give the prompt crops
+        # the names they have in recorded datasets.
+        from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep
+
+        rename = {"observation.prompt_object": OBS_PROMPT_OBJECT, "observation.prompt_receptacle": OBS_PROMPT_RECEPTACLE}
+        return PolicyProcessorPipeline(steps=[RenameObservationsProcessorStep(rename_map=rename)]), PolicyProcessorPipeline(steps=[])
+
     @property
     def package_name(self) -> str:
         return "lerobot_condground.envs"
@@ -82,6 +94,7 @@ class CondGroundEnvConfig(EnvConfig):
             "observation_height": self.observation_height,
             "observation_width": self.observation_width,
             "wrist_camera": self.wrist_camera,
+            "prompts": self.prompts,
             "render_mode": self.render_mode,
             "fps": self.fps,
             "max_episode_steps": self.episode_length,

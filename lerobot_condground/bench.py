@@ -1,4 +1,4 @@
-"""`condground bench`: simulation and recording throughput on this machine.
+"""`condground bench`: simulation, recording and policy throughput on this machine.
 
 Each figure is measured in the same process, one after the other, on the same scene, so the ratios
 (env step rate over render-only fps) compare like with like.
@@ -11,9 +11,11 @@ import statistics
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from lerobot_condground.bench_policy import PolicyBenchConfig
 
 
 @dataclass
@@ -27,6 +29,8 @@ class BenchConfig:
     rounds: int = 5
     # Expert episodes recorded for the recording throughput.
     record_episodes: int = 3
+    # Training-step and inference cost of act_modified against stock ACT, on the recorded episodes.
+    policy: PolicyBenchConfig = field(default_factory=PolicyBenchConfig)
     # Print one JSON object instead of a table.
     json: bool = False
 
@@ -139,10 +143,14 @@ def run_bench(cfg: BenchConfig) -> dict:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         frames = LeRobotDataset("local/bench", root=f"{tmp}/ds").meta.total_frames
+        results["record_frames_per_s"] = frames / elapsed
+        results["record_s_per_episode"] = elapsed / out["total_episodes"]
+        if cfg.policy.enable:
+            from lerobot_condground.bench_policy import bench_policies
+
+            results |= bench_policies("local/bench", f"{tmp}/ds", cfg.policy, cfg.rounds)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    results["record_frames_per_s"] = frames / elapsed
-    results["record_s_per_episode"] = elapsed / out["total_episodes"]
 
     if cfg.json:
         print(json.dumps(results))

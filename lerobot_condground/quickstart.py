@@ -1,53 +1,145 @@
-"""`condground quickstart`: the whole foundation in a few minutes on a laptop.
+"""`condground quickstart`: the whole pipeline in a few minutes on a laptop CPU.
 
-Records a few expert episodes of each task into LeRobotDatasets, then runs the expert under `clean`
-and `full_mixed` and prints a stage-metric table. Rerunning reuses the recorded datasets.
+1. records a few expert demonstrations of each task (LeRobotDatasets with masks, phases, prompts),
+2. trains a small `act_modified` (variant `full`) on Task 1 with the stock `lerobot-train`,
+3. evaluates it with the stock `lerobot-eval` under `clean` and `full_mixed`,
+4. prints the stage table of the policy next to the scripted expert's.
+
+Everything runs at a small camera resolution so a CPU gets through it; a few demonstrations and
+a few hundred steps make a pipeline check, not a learning result. Rerunning reuses the datasets
+and the trained checkpoint.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+import os
+import subprocess
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_condground.conditions import TASKS
 
+CONDITIONS = ("clean", "full_mixed")
+TRAIN_TASK = "PickPlaceFixedBin-v0"
+
+
+@dataclass
+class QuickstartTrainConfig:
+    steps: int = 300
+    batch_size: int = 8
+    # ImageNet weights for the ResNet-18 backbone (downloaded by torchvision; needs the internet).
+    pretrained_backbone: bool = False
+    variant: str = "full"
+
+
+@dataclass
+class QuickstartEvalConfig:
+    # Policy rollouts per condition.
+    episodes: int = 6
+    episode_length: int = 300
+
 
 @dataclass
 class QuickstartConfig:
-    # Where datasets land: <output_dir>/datasets/<task>.
+    # Datasets land in <output_dir>/datasets/<task>, the policy in <output_dir>/train.
     output_dir: str = "outputs/quickstart"
     # Expert demonstrations recorded per task.
-    episodes_per_task: int = 3
+    episodes_per_task: int = 10
     # Expert rollouts per task and condition for the stage-metric table.
     expert_episodes: int = 20
+    observation_height: int = 96
+    observation_width: int = 128
+    train: QuickstartTrainConfig = field(default_factory=QuickstartTrainConfig)
+    eval: QuickstartEvalConfig = field(default_factory=QuickstartEvalConfig)
     progress: bool = True
 
 
-def run_quickstart(cfg: QuickstartConfig) -> list:
-    from lerobot_condground.envs.configs import CondGroundEnvConfig
-    from lerobot_condground.expert_rollouts import expert_stages
-    from lerobot_condground.record import RecordConfig, RecordDatasetConfig, format_summary, record
-    from lerobot_condground.stage_metrics import format_table, stage_metrics
+def _script(name: str) -> str:
+    """A console script installed beside this interpreter (lerobot-train, lerobot-eval)."""
+    return str(Path(sys.executable).parent / name)
 
+
+def _run(command: list[str]) -> None:
+    print("$", " ".join(command), flush=True)
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    proc = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{Path(command[0]).name} failed ({proc.returncode}):\n{proc.stdout[-6000:]}")
+
+
+def _record(cfg: QuickstartConfig) -> dict[str, Path]:
+    from lerobot_condground.envs.configs import CondGroundEnvConfig
+    from lerobot_condground.record import RecordConfig, RecordDatasetConfig, format_summary, record
+
+    roots = {}
     for task in TASKS:
         root = Path(cfg.output_dir) / "datasets" / task
         result = record(
             RecordConfig(
-                env=CondGroundEnvConfig(task=task),
-                dataset=RecordDatasetConfig(
-                    repo_id=f"local/condground_{task.split('-')[0].lower()}", root=str(root),
-                    num_episodes=cfg.episodes_per_task,
+                env=CondGroundEnvConfig(
+                    task=task, observation_height=cfg.observation_height, observation_width=cfg.observation_width
                 ),
+                dataset=RecordDatasetConfig(repo_id=_repo_id(task), root=str(root), num_episodes=cfg.episodes_per_task),
                 progress=cfg.progress,
             )
         )
-        print(f"[{task}] dataset {root}: {result['total_episodes']} episodes")
-        print(format_summary(result))
-    rows = []
-    for task in TASKS:
-        for condition in ("clean", "full_mixed"):
-            stages = expert_stages(task, condition, cfg.expert_episodes, progress=cfg.progress)
-            rows.append((task, condition, stage_metrics(stages)))
-    print("\nScripted expert, stage metrics")
-    print(format_table(rows))
+        print(f"[{task}] dataset {root}: {result['total_episodes']} episodes; {format_summary(result)}")
+        roots[task] = root
+    return roots
+
+
+def _repo_id(task: str) -> str:
+    return f"local/condground_{task.split('-')[0].lower()}"
+
+
+def _train(cfg: QuickstartConfig, root: Path) -> Path:
+    out = Path(cfg.output_dir) / "train"
+    checkpoint = out / "checkpoints" / "last" / "pretrained_model"
+    if checkpoint.exists():
+        print(f"Reusing the trained policy {checkpoint} (delete {out} to retrain)")
+        return checkpoint
+    _run([
+        _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={cfg.train.variant}",
+        "--policy.device=cpu", "--policy.push_to_hub=false", "--policy.dim_model=128", "--policy.n_heads=4",
+        "--policy.dim_feedforward=512", "--policy.n_encoder_layers=2", "--policy.n_vae_encoder_layers=2",
+        "--policy.chunk_size=20", "--policy.n_action_steps=20", "--policy.optimizer_lr=1e-4",
+        "--policy.optimizer_lr_backbone=1e-4",
+        *([] if cfg.train.pretrained_backbone else ["--policy.pretrained_backbone_weights=null"]),
+        f"--dataset.repo_id={_repo_id(TRAIN_TASK)}", f"--dataset.root={root}",
+        f"--batch_size={cfg.train.batch_size}", f"--steps={cfg.train.steps}", f"--save_freq={cfg.train.steps}",
+        f"--log_freq={max(1, cfg.train.steps // 10)}", "--num_workers=0", "--wandb.enable=false",
+        f"--output_dir={out}",
+    ])
+    return checkpoint
+
+
+def _evaluate(cfg: QuickstartConfig, checkpoint: Path, condition: str) -> list[int]:
+    out = Path(cfg.output_dir) / "eval" / condition
+    _run([
+        _script("lerobot-eval"), f"--policy.path={checkpoint}", "--env.type=condground", f"--env.task={TRAIN_TASK}",
+        f"--env.condition={condition}", f"--env.observation_height={cfg.observation_height}",
+        f"--env.observation_width={cfg.observation_width}", f"--env.episode_length={cfg.eval.episode_length}",
+        f"--eval.n_episodes={cfg.eval.episodes}", f"--eval.batch_size={min(cfg.eval.episodes, 4)}",
+        f"--output_dir={out}",
+    ])
+    info = json.loads((out / "eval_info.json").read_text())
+    # The env's reward is the stage index, so an episode's max reward is the stage it reached.
+    return [int(r) for r in info["per_task"][0]["metrics"]["max_rewards"]]
+
+
+def run_quickstart(cfg: QuickstartConfig) -> list:
+    from lerobot_condground.expert_rollouts import expert_stages
+    from lerobot_condground.stage_metrics import format_table, stage_metrics
+
+    roots = _record(cfg)
+    checkpoint = _train(cfg, roots[TRAIN_TASK])
+    rows = [(f"act_modified/{cfg.train.variant}", condition, stage_metrics(_evaluate(cfg, checkpoint, condition)))
+            for condition in CONDITIONS]
+    rows += [("expert", condition, stage_metrics(expert_stages(TRAIN_TASK, condition, cfg.expert_episodes,
+                                                               progress=cfg.progress)))
+             for condition in CONDITIONS]
+    print(f"\n{TRAIN_TASK}: stage metrics of the trained policy and of the scripted expert")
+    print(format_table(rows, first_column="policy"))
     return rows

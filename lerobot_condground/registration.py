@@ -1,8 +1,11 @@
 """Everything the plugin registers with LeRobot and gymnasium, imported once by the package.
 
 LeRobot's stock scripts import the plugin through the `lerobot_policy_condground` distribution name,
-so these registrations are what makes `--env.type=condground` resolve with no extra flag.
+so these registrations are what makes `--env.type=condground` and `--policy.type=act_modified`
+resolve with no extra flag, and what lets a saved preprocessor find the copy-paste step again.
 """
 
 from lerobot_condground import envs  # noqa: F401  gym ids gym_condground/<task>
+from lerobot_condground import policies  # noqa: F401  PreTrainedConfig type "act_modified"
 from lerobot_condground.envs import configs  # noqa: F401  EnvConfig type "condground"
+from lerobot_condground.processors import copy_paste  # noqa: F401  ProcessorStep "condground_copy_paste"

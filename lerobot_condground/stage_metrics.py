@@ -25,9 +25,9 @@ def _pct(k: int, n: int) -> str:
     return f"{100 * k / n:5.1f}% ({k}/{n})" if n else "   n/a (0/0)"
 
 
-def format_table(rows: list[tuple[str, str, dict]]) -> str:
-    """rows: (task, condition, stage_metrics(...))."""
-    header = f"{'task':<22} {'condition':<20} {'success':>16} {'P(pick)':>16} {'P(lift|pick)':>16} {'P(place|pick,lift)':>19}"
+def format_table(rows: list[tuple[str, str, dict]], first_column: str = "task") -> str:
+    """rows: (task or policy, condition, stage_metrics(...))."""
+    header = f"{first_column:<22} {'condition':<20} {'success':>16} {'P(pick)':>16} {'P(lift|pick)':>16} {'P(place|pick,lift)':>19}"
     lines = [header, "-" * len(header)]
     for task, condition, m in rows:
         lines.append(

@@ -1,1 +1,3 @@
-"""Policies of the plugin. The `act_modified` policy type lands here (issue 3)."""
+"""Policies of the plugin: `act_modified` (LeRobot's ACT with the paper's interventions)."""
+
+from . import act_modified  # noqa: F401  registers the policy type

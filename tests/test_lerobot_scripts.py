@@ -57,3 +57,51 @@ def test_unknown_condition_is_refused_by_lerobot_eval(stock_act_checkpoint, tmp_
         "--env.condition=object_color_7", "--eval.n_episodes=1", f"--output_dir={tmp_path}", check=False,
     )
     assert out.returncode != 0 and "Unknown condition 'object_color_7'" in out.stderr
+
+
+@pytest.fixture(scope="module")
+def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
+    """The full act_modified variant trained 3 steps by the stock lerobot-train."""
+    out = tmp_path_factory.mktemp("train_modified") / "run"
+    tiny = [a.replace("--policy.type=act", "--policy.type=act_modified") for a in TINY_ACT]
+    run_cli(
+        "lerobot-train", *tiny, "--policy.variant=full", "--policy.n_vae_encoder_layers=1",
+        "--dataset.repo_id=local/test_full_mixed", f"--dataset.root={recorded_dataset}", "--batch_size=2",
+        "--steps=3", "--save_freq=3", "--log_freq=1", "--num_workers=0", f"--output_dir={out}",
+        "--wandb.enable=false",
+    )
+    return out / "checkpoints" / "last" / "pretrained_model"
+
+
+def test_act_modified_checkpoint_is_a_standard_lerobot_checkpoint(act_modified_checkpoint):
+    config = read_json(act_modified_checkpoint / "config.json")
+    assert config["type"] == "act_modified" and config["variant"] == "full"
+    assert set(config["input_features"]) == {"observation.images.top", "observation.state"}
+    assert "observation.segmentation" in config["label_keys"]
+    steps = read_json(act_modified_checkpoint / "policy_preprocessor.json")["steps"]
+    names = [s.get("registry_name") for s in steps]
+    copy_paste = names.index("condground_copy_paste")
+    assert names.index("device_processor") < copy_paste < names.index("normalizer_processor")
+    assert (act_modified_checkpoint / steps[copy_paste]["state_file"]).exists()
+    assert (act_modified_checkpoint / "model.safetensors").exists()
+
+
+def test_stock_lerobot_eval_runs_act_modified(act_modified_checkpoint, tmp_path):
+    out = tmp_path / "eval"
+    run_cli(
+        "lerobot-eval", f"--policy.path={act_modified_checkpoint}", "--env.type=condground",
+        "--env.task=PickPlaceRandomBin-v0", "--env.condition=full_mixed", "--env.episode_length=12",
+        "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={out}",
+    )
+    info = read_json(out / "eval_info.json")
+    assert info["overall"]["n_episodes"] == 2
+    assert all(r in (0.0, 1.0, 2.0, 3.0) for r in info["per_task"][0]["metrics"]["max_rewards"])
+
+
+def test_act_modified_needs_prompts_from_the_env(act_modified_checkpoint, tmp_path):
+    out = run_cli(
+        "lerobot-eval", f"--policy.path={act_modified_checkpoint}", "--env.type=condground",
+        "--env.prompts=false", "--env.episode_length=4", "--eval.n_episodes=1", "--eval.batch_size=1",
+        "--eval.use_async_envs=false", f"--output_dir={tmp_path}", check=False,
+    )
+    assert out.returncode != 0 and "--env.prompts=true" in out.stdout + out.stderr

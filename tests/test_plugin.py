@@ -18,9 +18,17 @@ def test_lerobot_discovers_the_plugin_and_the_import_stays_cheap():
         "from lerobot.envs.configs import EnvConfig\n"
         "import gymnasium as gym\n"
         "assert 'condground' in EnvConfig.get_known_choices(), EnvConfig.get_known_choices()\n"
+        "from lerobot.configs.policies import PreTrainedConfig\n"
+        "assert 'act_modified' in PreTrainedConfig.get_known_choices()\n"
+        "from lerobot.processor.pipeline import ProcessorStepRegistry\n"
+        "assert any('copy_paste' in name for name in ProcessorStepRegistry.list())\n"
+        "from lerobot.policies.factory import get_policy_class\n"
+        "assert get_policy_class('act_modified').name == 'act_modified'\n"
         "assert 'gym_condground/PickPlaceRandomBin-v0' in gym.registry\n"
         "assert 'lerobot_condground' in sys.modules\n"
-        "assert 'mujoco' not in sys.modules and 'cv2' not in sys.modules\n"
+        # OpenCV is imported by LeRobot's own policy package (ACTConfig), which every stock script
+        # loads anyway; MuJoCo is ours to keep out of discovery.
+        "assert 'mujoco' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 

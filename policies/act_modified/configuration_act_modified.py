@@ -1,0 +1,173 @@
+"""Configuration of `act_modified`: LeRobot's ACT plus the paper's three interventions.
+
+The paper's four variants are presets of this one type (`--policy.variant=...`); every switch and
+weight stays overridable after the preset, e.g.
+`--policy.type=act_modified --policy.variant=full --policy.attention_pos_weight=0.5`.
+
+| variant                  | copy-paste | attention loss | prompts | phase predictor |
+|--------------------------|:----------:|:--------------:|:-------:|:---------------:|
+| `standard`               |            |                |         |                 |
+| `augmentation`           |     x      |                |         |                 |
+| `augmentation_attention` |     x      |       x        |         |                 |
+| `full` (default)         |     x      |       x        |    x    |        x        |
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType
+from lerobot.policies.act.configuration_act import ACTConfig
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+
+from lerobot_condground.labels import (
+    LABEL_KEYS,
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+)
+
+COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
+VARIANTS: dict[str, dict[str, bool]] = {
+    "standard": dict.fromkeys(COMPONENTS, False),
+    "augmentation": {**dict.fromkeys(COMPONENTS, False), "use_copy_paste": True},
+    "augmentation_attention": {
+        **dict.fromkeys(COMPONENTS, False), "use_copy_paste": True, "use_attention_loss": True,
+    },
+    "full": dict.fromkeys(COMPONENTS, True),
+}
+# Label features each component reads from the dataset.
+COMPONENT_NEEDS: dict[str, tuple[str, ...]] = {
+    "use_copy_paste": (OBS_SEGMENTATION,),
+    "use_attention_loss": (OBS_SEGMENTATION, OBS_PHASE),
+    "use_prompts": (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_PHASE),
+    "use_phase_predictor": (OBS_PHASE,),
+}
+
+
+@PreTrainedConfig.register_subclass("act_modified")
+@dataclass
+class ACTModifiedConfig(ACTConfig):
+    """ACT with copy-paste augmentation, phase-dependent attention regularization, positionless
+    visual prompts and a phase predictor (paper eq. 1):
+
+        L = L_ACT + phase_loss_weight * L_phi + attention_pos_weight * (1 - <A, M_phi>)
+                  + attention_neg_weight * <A, M_d>
+    """
+
+    # One of standard | augmentation | augmentation_attention | full. Sets the four switches
+    # below unless they are given explicitly.
+    variant: str = "full"
+    use_copy_paste: bool | None = None
+    use_attention_loss: bool | None = None
+    use_prompts: bool | None = None
+    use_phase_predictor: bool | None = None
+
+    # Attention regularization: this head of the last decoder layer's cross-attention is supervised,
+    # over the token grid of `attention_camera` (default: the first camera).
+    attention_head: int = 0
+    attention_camera: str | None = None
+    attention_pos_weight: float = 1.0  # lambda_+
+    attention_neg_weight: float = 1.0  # lambda_-
+
+    # Phase predictor (L_phi, cross-entropy). In training the prompt is chosen by the phase label
+    # with this probability and by the predictor otherwise (scheduled sampling when < 1).
+    phase_loss_weight: float = 1.0  # lambda_phi
+    phase_teacher_forcing: float = 1.0
+    phase_head_dim: int = 256
+
+    # Copy-paste distractor augmentation (a train-only preprocessor step; saved with the checkpoint,
+    # so changing these for a loaded checkpoint has no effect on its saved step).
+    copy_paste_prob: float = 0.8
+    copy_paste_min_count: int = 1
+    copy_paste_max_count: int = 4
+    copy_paste_max_occlusion: float = 0.1
+    copy_paste_seed: int = 0
+
+    # Warm start: a stock `act` (or `act_modified`) checkpoint, local directory or hub id, whose
+    # weights initialize the shared ACT parameters; the new heads start fresh.
+    init_from_act: str | None = None
+
+    # Label features this policy was configured with (filled from the dataset on first use).
+    label_keys: list[str] | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.variant not in VARIANTS:
+            raise ValueError(f"Unknown act_modified variant {self.variant!r}; allowed: {', '.join(VARIANTS)}")
+        for name, value in VARIANTS[self.variant].items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+        if not 0 <= self.attention_head < self.n_heads:
+            raise ValueError(f"attention_head={self.attention_head} must be in [0, n_heads={self.n_heads})")
+        for name in ("attention_pos_weight", "attention_neg_weight", "phase_loss_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
+        if not 0.0 <= self.phase_teacher_forcing <= 1.0:
+            raise ValueError(f"phase_teacher_forcing={self.phase_teacher_forcing} must be in [0, 1]")
+        if self.use_prompts and not self.use_phase_predictor:
+            raise ValueError(
+                "use_prompts=true needs use_phase_predictor=true: the predicted phase picks the object or "
+                "receptacle prompt at inference"
+            )
+        if self.use_copy_paste:
+            self.make_copy_paste_step()  # validates the copy_paste_* values now, at parse time
+
+    def make_copy_paste_step(self):
+        from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep
+
+        return CopyPasteDistractorStep(
+            camera_key=self.attention_camera or f"{OBS_IMAGES}.top",
+            prob=self.copy_paste_prob,
+            min_count=self.copy_paste_min_count,
+            max_count=self.copy_paste_max_count,
+            max_occlusion=self.copy_paste_max_occlusion,
+            seed=self.copy_paste_seed,
+        )
+
+    def needed_label_keys(self) -> list[str]:
+        needed = [key for name, keys in COMPONENT_NEEDS.items() if getattr(self, name) for key in keys]
+        return sorted(set(needed))
+
+    def validate_features(self) -> None:
+        if self.label_keys is None:
+            self._take_label_features()
+        missing = [key for key in self.needed_label_keys() if key not in self.label_keys]
+        if missing:
+            fallback = next(
+                name for name in reversed(VARIANTS)
+                if all(key in self.label_keys for c, on in VARIANTS[name].items() if on for key in COMPONENT_NEEDS[c])
+            )
+            switches = ", ".join(f"{c}={getattr(self, c)}" for c in COMPONENTS)
+            raise ValueError(
+                f"act_modified variant {self.variant!r} ({switches}) needs the dataset features {missing}, which "
+                f"the dataset lacks. `condground record` writes them; variant {fallback!r} does not need them."
+            )
+        super().validate_features()
+        if self.attention_camera is None and self.image_features:
+            self.attention_camera = next(iter(self.image_features))
+        if (self.use_attention_loss or self.use_copy_paste) and self.attention_camera not in self.image_features:
+            raise ValueError(
+                f"attention_camera={self.attention_camera!r} is not a camera of the policy; allowed: "
+                f"{', '.join(self.image_features)}"
+            )
+
+    def _take_label_features(self) -> None:
+        """Moves label features out of the inputs: they are targets and masks, not observations, and
+        the normalizer must never see them. Only state and cameras stay inputs."""
+        segmentation = self.input_features.get(OBS_SEGMENTATION)
+        self.label_keys = [key for key in LABEL_KEYS if key in self.input_features]
+        for key in list(self.input_features):
+            feature = self.input_features[key]
+            is_camera = feature.type is FeatureType.VISUAL and key.startswith(f"{OBS_IMAGES}.")
+            if key not in (OBS_STATE, OBS_ENV_STATE) and not is_camera:
+                del self.input_features[key]
+        camera = self.attention_camera or next(iter(self.image_features), None)
+        if segmentation is not None and camera in self.image_features:
+            if tuple(segmentation.shape) != tuple(self.image_features[camera].shape[-2:]):
+                raise ValueError(
+                    f"{OBS_SEGMENTATION} has shape {tuple(segmentation.shape)} but camera {camera} is "
+                    f"{tuple(self.image_features[camera].shape)}: the masks must label that camera's pixels"
+                )

@@ -1,0 +1,24 @@
+"""Pre/post-processors of `act_modified`: LeRobot's four stock steps, with the copy-paste augmentation
+between device placement and normalization (it pastes into [0, 1] frames on the training device)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from lerobot.processor import PolicyAction, PolicyProcessorPipeline
+from lerobot.processor.factory import make_default_policy_processor_steps, make_policy_processor_pipelines
+
+from .configuration_act_modified import ACTModifiedConfig
+
+
+def make_act_modified_pre_post_processors(
+    config: ACTModifiedConfig,
+    dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None,
+) -> tuple[PolicyProcessorPipeline[dict[str, Any], dict[str, Any]], PolicyProcessorPipeline[PolicyAction, PolicyAction]]:
+    steps = make_default_policy_processor_steps(config, dataset_stats, normalizer_device=config.device)
+    augmentation = [config.make_copy_paste_step()] if config.use_copy_paste else []
+    return make_policy_processor_pipelines(
+        input_steps=[steps.rename_observations, steps.add_batch_dim, steps.to_device, *augmentation, steps.normalize],
+        output_steps=[steps.unnormalize, steps.to_cpu],
+    )
