@@ -2,6 +2,7 @@
 
     condground record      expert demonstrations -> LeRobotDataset
     condground bench       simulation and recording throughput
+    condground augment     a LeRobotDataset with copy-paste distractors -> a new LeRobotDataset
     condground quickstart  record a few episodes per task and print the expert's stage metrics
 """
 
@@ -15,6 +16,7 @@ import draccus
 COMMANDS = {
     "record": "Record scripted-expert demonstrations into a LeRobotDataset (v3).",
     "bench": "Measure physics, rendering, env-step and recording throughput on this machine.",
+    "augment": "Write a copy of a LeRobotDataset with synthetic distractors pasted in (copy-paste augmentation).",
     "quickstart": "Record a few episodes of each task and print the expert's stage metrics (clean, full_mixed).",
 }
 
@@ -47,6 +49,15 @@ def main(argv: list[str] | None = None) -> int:
         args = ["--json=true" if a == "--json" else a for a in args]
         cfg = draccus.parse(BenchConfig, args=args, prog="condground bench")
         run_bench(cfg)
+    elif command == "augment":
+        from lerobot_condground.augment import AugmentConfig, augment_dataset, format_summary
+
+        cfg = draccus.parse(AugmentConfig, args=args, prog="condground augment")
+        try:
+            print(format_summary(augment_dataset(cfg)))
+        except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad input: one line, no traceback
+            print(f"condground augment: {err}", file=sys.stderr)
+            return 2
     elif command == "quickstart":
         from lerobot_condground.quickstart import QuickstartConfig, run_quickstart
 

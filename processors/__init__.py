@@ -1,1 +1,6 @@
-"""Processor steps of the plugin. The copy-paste distractor augmentation lands here (issue 3)."""
+"""Processor steps of the plugin. Importing this package registers them with LeRobot's
+`ProcessorStepRegistry`, which is how a saved pipeline finds them again."""
+
+from .copy_paste import CopyPasteDistractorStep
+
+__all__ = ["CopyPasteDistractorStep"]
