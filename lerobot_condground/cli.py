@@ -1,9 +1,9 @@
 """`condground`: the plugin's own jobs. Flags follow LeRobot's `--group.key=value` style.
 
     condground record      expert demonstrations -> LeRobotDataset
-    condground bench       simulation and recording throughput
+    condground bench       simulation, recording and policy throughput
     condground augment     a LeRobotDataset with copy-paste distractors -> a new LeRobotDataset
-    condground quickstart  record a few episodes per task and print the expert's stage metrics
+    condground quickstart  record demos, train and evaluate a small act_modified, print stage tables
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import draccus
 
 COMMANDS = {
     "record": "Record scripted-expert demonstrations into a LeRobotDataset (v3).",
-    "bench": "Measure physics, rendering, env-step and recording throughput on this machine.",
+    "bench": "Measure physics, rendering, env-step, recording and act_modified-vs-ACT throughput here.",
     "augment": "Write a copy of a LeRobotDataset with synthetic distractors pasted in (copy-paste augmentation).",
-    "quickstart": "Record a few episodes of each task and print the expert's stage metrics (clean, full_mixed).",
+    "quickstart": "Record demos, train a small act_modified (lerobot-train), evaluate it (lerobot-eval), print stages.",
 }
 
 

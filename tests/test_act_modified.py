@@ -196,13 +196,27 @@ def test_variant_presets_can_be_overridden():
 
 
 def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
+    from lerobot.policies.factory import make_pre_post_processors
+
     policy = make_policy(variant="full")
-    policy.save_pretrained(tmp_path)
+    stats = {
+        CAMERA: {"mean": torch.full((3, 1, 1), 0.4), "std": torch.full((3, 1, 1), 0.2)},
+        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
+        "action": {"mean": torch.ones(7), "std": torch.full((7,), 2.0)},
+    }
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=stats)
+    for part in (policy, preprocessor, postprocessor):
+        part.save_pretrained(tmp_path)
     loaded = ACTModifiedPolicy.from_pretrained(tmp_path)
+    loaded_pre, loaded_post = make_pre_post_processors(loaded.config, pretrained_path=str(tmp_path))
     assert loaded.config.variant == "full" and loaded.config.label_keys == policy.config.label_keys
-    batch = observation(make_batch())
-    policy.eval()
-    torch.testing.assert_close(loaded.predict_action_chunk(batch), policy.predict_action_chunk(batch), rtol=0, atol=0)
+    assert [type(s) for s in loaded_pre.steps] == [type(s) for s in preprocessor.steps]
+
+    def act(policy, pre, post):
+        policy.reset()
+        return post(policy.select_action(pre(observation(make_batch()))))
+
+    torch.testing.assert_close(act(loaded, loaded_pre, loaded_post), act(policy, preprocessor, postprocessor), rtol=0, atol=0)
 
 
 def test_warm_start_from_a_stock_act_checkpoint(tmp_path):

@@ -61,14 +61,16 @@ def test_unknown_condition_is_refused_by_lerobot_eval(stock_act_checkpoint, tmp_
 
 @pytest.fixture(scope="module")
 def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
-    """The full act_modified variant trained 3 steps by the stock lerobot-train."""
+    """The full act_modified variant trained 3 steps by the stock lerobot-train, with its periodic env eval."""
     out = tmp_path_factory.mktemp("train_modified") / "run"
     tiny = [a.replace("--policy.type=act", "--policy.type=act_modified") for a in TINY_ACT]
     run_cli(
         "lerobot-train", *tiny, "--policy.variant=full", "--policy.n_vae_encoder_layers=1",
         "--dataset.repo_id=local/test_full_mixed", f"--dataset.root={recorded_dataset}", "--batch_size=2",
         "--steps=3", "--save_freq=3", "--log_freq=1", "--num_workers=0", f"--output_dir={out}",
-        "--wandb.enable=false",
+        "--wandb.enable=false", "--env.type=condground", "--env.task=PickPlaceRandomBin-v0",
+        "--env.condition=full_mixed", "--env.episode_length=6", "--env_eval_freq=3", "--eval.n_episodes=1",
+        "--eval.batch_size=1",
     )
     return out / "checkpoints" / "last" / "pretrained_model"
 

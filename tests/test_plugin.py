@@ -62,3 +62,16 @@ def test_example_runs(tmp_path):
                           capture_output=True, text=True, check=True)
     assert "stage reached: 3" in proc.stdout and "success: True" in proc.stdout
     assert cv2.imread(str(out)).shape == (240, 640, 3)
+
+
+def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
+    out = run_cli(
+        "condground", "quickstart", f"--output_dir={tmp_path}", "--episodes_per_task=1", "--expert_episodes=1",
+        "--train.steps=2", "--train.batch_size=2", "--eval.episodes=1", "--eval.episode_length=10",
+        "--progress=false", timeout=900,
+    ).stdout
+    lines = out.splitlines()
+    for policy in ("act_modified/full", "expert"):
+        for condition in ("clean", "full_mixed"):
+            assert any(line.split()[:2] == [policy, condition] for line in lines), out[-3000:]
+    assert (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "policy_preprocessor.json").exists()
