@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lerobot_condground.labels import OBS_SEGMENTATION, SYNTHETIC_DISTRACTOR
+from lerobot_condground.labels import OBS_SEGMENTATION, SYNTHETIC_DISTRACTOR, decode_labels, encode_png
 from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep as Step
 from lerobot_condground.record import PROVENANCE_FILE
 
@@ -94,11 +94,6 @@ def _open_source(cfg: AugmentConfig):
         raise ValueError(f"{root} has no {OBS_SEGMENTATION!r} feature, which the augmentation needs to spare the "
                          f"targets and label the pastes; allowed: a dataset recorded with segmentation "
                          f"(`condground record`, or labels from SAM 2)")
-    seg_shape = tuple(features[OBS_SEGMENTATION]["shape"])
-    cam_shape = tuple(features[camera]["shape"])
-    if seg_shape != cam_shape[:2]:
-        raise ValueError(f"{OBS_SEGMENTATION} has shape {seg_shape} but {camera} is {cam_shape}; allowed: a label "
-                         f"map of the camera's (height, width)")
     return dataset, root
 
 
@@ -121,6 +116,8 @@ def _frame(item: dict, features: dict, cameras: list[str]) -> dict:
         value = item[key]
         if key in cameras:
             frame[key] = (value.permute(1, 2, 0) * 255).round().clamp(0, 255).to(torch.uint8).numpy()
+        elif ft["dtype"] == "string":
+            frame[key] = value
         else:
             frame[key] = np.asarray(value).reshape(ft["shape"]).astype(ft["dtype"])
     return frame
@@ -159,12 +156,13 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
             for first in range(start, stop, cfg.batch_size):
                 items = [source[i] for i in range(first, min(first + cfg.batch_size, stop))]
                 images = torch.stack([item[camera] for item in items])
-                seg = torch.stack([torch.as_tensor(item[OBS_SEGMENTATION]) for item in items])
+                seg = torch.stack([decode_labels(item)[OBS_SEGMENTATION] for item in items])
                 images, seg = step.augment(images, seg)
                 synthetic = (seg == SYNTHETIC_DISTRACTOR).flatten(1).sum(1)
                 pasted_frames += int((synthetic > 0).sum())
                 pasted_pixels += int(synthetic.sum())
                 for item, image, labels in zip(items, images, seg):
+                    labels = encode_png(labels.numpy())
                     target.add_frame(_frame({**item, camera: image, OBS_SEGMENTATION: labels}, features, cameras))
                 frames += len(items)
                 bar.update(len(items))

@@ -1,26 +1,75 @@
 """Names and encoding of the label features a recorded dataset carries beside cameras and state.
 
-They are plain numeric `observation.*` features: LeRobot's batch conversion keeps them, and a stock
-policy only reads `observation.state` and its cameras, so they are never fed to a policy that does
-not ask for them.
-
-`observation.segmentation` (H, W) uint8, lossless: 0 background and robot, 1 target object,
-2 target receptacle, 3.. competitors (their classes are in the dataset's provenance file), 255
-synthetic competitors pasted by the copy-paste augmentation.
+`observation.segmentation`: one label map of the top camera, (H, W) uint8, lossless: 0 background
+and robot, 1 target object, 2 target receptacle, 3.. competitors (their classes are in the dataset's
+provenance file), 255 synthetic competitors pasted by the copy-paste augmentation.
 `observation.phase` (1,) int64: 0 acquire the object, 1 transport and place.
-`observation.prompt.object` / `observation.prompt.receptacle` (64, 64, 3) uint8: positionless crops.
+`observation.prompt.object` / `observation.prompt.receptacle`: positionless (64, 64, 3) RGB crops.
+
+The segmentation and the prompts are stored as one PNG per frame (base64 `string` features). As
+numeric columns they made every training sample slow: LeRobot fetches whole parquet rows for each
+frame of the action chunk, and converting 100 rows of 240x320 label maps took about 3 s per sample
+(5 ms as strings). `decode_labels` turns them back into uint8 tensors; the `condground_decode_labels`
+processor step does it for act_modified. A stock policy never reads them: they are `observation.*`
+strings, which LeRobot's batch conversion keeps and its statistics and normalizer skip.
 """
 
 from __future__ import annotations
+
+import base64
+
+import numpy as np
 
 OBS_SEGMENTATION = "observation.segmentation"
 OBS_PHASE = "observation.phase"
 OBS_PROMPT_OBJECT = "observation.prompt.object"
 OBS_PROMPT_RECEPTACLE = "observation.prompt.receptacle"
 LABEL_KEYS = (OBS_SEGMENTATION, OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
+PNG_LABEL_KEYS = (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
+PNG_FEATURE = {"dtype": "string", "shape": (1,), "names": None}
 
 BACKGROUND, TARGET_OBJECT, TARGET_RECEPTACLE, FIRST_COMPETITOR = 0, 1, 2, 3
 SYNTHETIC_DISTRACTOR = 255
+
+
+def encode_png(image: np.ndarray) -> str:
+    """uint8 (H, W) label map or (H, W, 3) RGB image -> base64 PNG text (lossless)."""
+    import cv2
+
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        raise ValueError(f"encode_png takes uint8 (H, W) or (H, W, 3) arrays; got {image.dtype} {image.shape}")
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError(f"PNG encoding failed for an array of shape {image.shape}")
+    return base64.b64encode(png.tobytes()).decode("ascii")
+
+
+def decode_png(text: str) -> np.ndarray:
+    """Inverse of `encode_png`."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(base64.b64decode(text), np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"not a base64 PNG label image: {text[:40]!r}...")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if image.ndim == 3 else image
+
+
+def decode_labels(data: dict) -> dict:
+    """A copy of a frame or batch dict with its PNG label features as uint8 tensors ((H, W) per frame,
+    (B, H, W) for a batch's list of strings). Values that are already arrays pass through."""
+    import torch
+
+    out = dict(data)
+    for key in PNG_LABEL_KEYS:
+        value = out.get(key)
+        if isinstance(value, str):
+            out[key] = torch.from_numpy(decode_png(value))
+        elif isinstance(value, list | tuple) and value and isinstance(value[0], str):
+            out[key] = torch.from_numpy(np.stack([decode_png(v) for v in value]))
+    return out
 
 
 def phase_masks(segmentation, phase):

@@ -62,11 +62,17 @@ def _script(name: str) -> str:
 
 
 def _run(command: list[str]) -> None:
+    """Runs a stock script, showing its progress lines (training steps, eval batches) as they come."""
     print("$", " ".join(command), flush=True)
     env = {**os.environ, "WANDB_MODE": "disabled"}
-    proc = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    with subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        for line in proc.stdout:
+            lines.append(line)
+            if " step:" in line or "pc_success" in line:
+                print("  " + line.rstrip()[-160:], flush=True)
     if proc.returncode != 0:
-        raise RuntimeError(f"{Path(command[0]).name} failed ({proc.returncode}):\n{proc.stdout[-6000:]}")
+        raise RuntimeError(f"{Path(command[0]).name} failed ({proc.returncode}):\n{''.join(lines[-80:])}")
 
 
 def _record(cfg: QuickstartConfig) -> dict[str, Path]:

@@ -23,7 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.envs.configs import CondGroundEnvConfig
-from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION
+from lerobot_condground.labels import (
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+    PNG_FEATURE,
+    encode_png,
+)
 
 PROVENANCE_FILE = "meta/condground_record.json"
 PROVENANCE_ENV_KEYS = ("task", "condition", "counterbalanced", "fps", "observation_height", "observation_width",
@@ -40,6 +47,10 @@ class RecordDatasetConfig:
     num_episodes: int = 100
     # Encode camera frames as video (true) or store them as PNG images (false).
     video: bool = True
+    # Write the label features act_modified and the diagnosis tools read (segmentation, phase, prompt
+    # crops). Stock LeRobot policies other than ACT-as-`act_modified --policy.variant=standard` cannot
+    # read string features: record with --dataset.labels=false for them.
+    labels: bool = True
     # Close and reopen the dataset after this many episodes: a crash loses at most these.
     checkpoint_every: int = 1
     push_to_hub: bool = False
@@ -64,28 +75,25 @@ class RecordConfig:
             raise ValueError(f"dataset.checkpoint_every={self.dataset.checkpoint_every} must be at least 1")
 
 
-def dataset_features(env_cfg: CondGroundEnvConfig, video: bool) -> dict:
-    from lerobot_condground.envs.pickplace_env import PROMPT_SIZE
+def dataset_features(env_cfg: CondGroundEnvConfig, video: bool, labels: bool = True) -> dict:
     from lerobot_condground.envs.robot import MOTOR_NAMES
 
     h, w = env_cfg.observation_height, env_cfg.observation_width
     image = {"dtype": "video" if video else "image", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
-    crop = {"dtype": "uint8", "shape": (PROMPT_SIZE, PROMPT_SIZE, 3), "names": ["height", "width", "channels"]}
     features = {
         "observation.images.top": image,
         "observation.state": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
         "action": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
-        OBS_PHASE: {"dtype": "int64", "shape": (1,), "names": ["phase"]},
-        OBS_SEGMENTATION: {"dtype": "uint8", "shape": (h, w), "names": ["height", "width"]},
-        OBS_PROMPT_OBJECT: crop,
-        OBS_PROMPT_RECEPTACLE: crop,
     }
+    if labels:
+        features[OBS_PHASE] = {"dtype": "int64", "shape": (1,), "names": ["phase"]}
+        features |= {key: dict(PNG_FEATURE) for key in (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)}
     if env_cfg.wrist_camera:
         features["observation.images.wrist"] = dict(image)
     return features
 
 
-def make_recording_env(env_cfg: CondGroundEnvConfig):
+def make_recording_env(env_cfg: CondGroundEnvConfig, labels: bool = True):
     from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
     return PickPlaceEnv(
@@ -95,8 +103,8 @@ def make_recording_env(env_cfg: CondGroundEnvConfig):
         observation_height=env_cfg.observation_height,
         observation_width=env_cfg.observation_width,
         wrist_camera=env_cfg.wrist_camera,
-        segmentation=True,
-        prompts=True,
+        segmentation=labels,
+        prompts=labels,
         fps=env_cfg.fps,
     )
 
@@ -116,16 +124,20 @@ def run_expert_episode(env, expert, seed: int, max_steps: int, on_step=None) -> 
 
 
 def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict:
+    """One dataset frame; label features only when the env rendered them (`make_recording_env`)."""
     frame = {
         "observation.images.top": obs["pixels"]["top"],
         "observation.state": obs["agent_pos"].astype(np.float32),
         "action": action.astype(np.float32),
-        OBS_PHASE: np.array([phase], dtype=np.int64),
-        OBS_SEGMENTATION: obs["segmentation"],
-        OBS_PROMPT_OBJECT: obs["prompt_object"],
-        OBS_PROMPT_RECEPTACLE: obs["prompt_receptacle"],
         "task": task,
     }
+    if "segmentation" in obs:
+        frame |= {
+            OBS_PHASE: np.array([phase], dtype=np.int64),
+            OBS_SEGMENTATION: encode_png(obs["segmentation"]),
+            OBS_PROMPT_OBJECT: encode_png(obs["prompt_object"]),
+            OBS_PROMPT_RECEPTACLE: encode_png(obs["prompt_receptacle"]),
+        }
     if "wrist" in obs["pixels"]:
         frame["observation.images.wrist"] = obs["pixels"]["wrist"]
     return frame
@@ -154,6 +166,9 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
             have = info["features"].get(key)
             if have is None or tuple(have["shape"]) != tuple(ft["shape"]) or have["dtype"] != ft["dtype"]:
                 mismatches.append(f"feature {key}")
+        from lerobot.utils.constants import DEFAULT_FEATURES
+
+        mismatches += [f"feature {key}" for key in sorted(set(info["features"]) - set(features) - set(DEFAULT_FEATURES))]
         for key in ("task", "condition", "counterbalanced"):
             if previous.get("env", {}).get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
                 mismatches.append(f"env.{key} {previous['env'][key]!r} != {getattr(cfg.env, key)!r}")
@@ -188,8 +203,8 @@ def record(cfg: RecordConfig) -> dict:
 
     from lerobot_condground.envs.expert import ScriptedExpert
 
-    features = dataset_features(cfg.env, cfg.dataset.video)
-    env = make_recording_env(cfg.env)  # validates the condition and its layout before anything is written
+    features = dataset_features(cfg.env, cfg.dataset.video, cfg.dataset.labels)
+    env = make_recording_env(cfg.env, cfg.dataset.labels)  # validates the condition and its layout before anything is written
     expert = ScriptedExpert()
     root = _dataset_root(cfg.dataset)
     dataset, previous = _open_dataset(cfg, root, features)

@@ -8,4 +8,4 @@ resolve with no extra flag, and what lets a saved preprocessor find the copy-pas
 from lerobot_condground import envs  # noqa: F401  gym ids gym_condground/<task>
 from lerobot_condground import policies  # noqa: F401  PreTrainedConfig type "act_modified"
 from lerobot_condground.envs import configs  # noqa: F401  EnvConfig type "condground"
-from lerobot_condground.processors import copy_paste  # noqa: F401  ProcessorStep "condground_copy_paste"
+from lerobot_condground.processors import copy_paste, decode_labels  # noqa: F401  condground_* ProcessorSteps

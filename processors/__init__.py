@@ -2,5 +2,6 @@
 `ProcessorStepRegistry`, which is how a saved pipeline finds them again."""
 
 from .copy_paste import CopyPasteDistractorStep
+from .decode_labels import DecodeLabelsStep
 
-__all__ = ["CopyPasteDistractorStep"]
+__all__ = ["CopyPasteDistractorStep", "DecodeLabelsStep"]

@@ -36,5 +36,17 @@ def recorded_dataset(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def plain_dataset(tmp_path_factory) -> Path:
+    """One expert episode of Task 2 under full_mixed without label features, for stock policies."""
+    root = tmp_path_factory.mktemp("data") / "plain"
+    run_cli(
+        "condground", "record", "--env.task=PickPlaceRandomBin-v0", "--env.condition=full_mixed",
+        "--dataset.repo_id=local/test_plain", f"--dataset.root={root}", "--dataset.num_episodes=1",
+        "--dataset.labels=false", "--progress=false",
+    )
+    return root
+
+
 def read_json(path: Path) -> dict:
     return json.loads(Path(path).read_text())

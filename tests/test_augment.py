@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from lerobot_condground.cli import main
-from lerobot_condground.labels import OBS_SEGMENTATION, SYNTHETIC_DISTRACTOR
+from lerobot_condground.labels import OBS_SEGMENTATION, SYNTHETIC_DISTRACTOR, decode_labels
 from conftest import read_json, run_cli
 
 CAM = "observation.images.top"
@@ -32,7 +32,7 @@ def test_augment_differs_only_where_synthetic(recorded_dataset, tmp_path):
     assert read_json(out_root / "meta/condground_augment.json")["copy_paste"]["seed"] == 3
     pasted = 0
     for i in range(0, len(source), 13):
-        a, b = source[i], augmented[i]
+        a, b = decode_labels(source[i]), decode_labels(augmented[i])
         synthetic = b[OBS_SEGMENTATION] == SYNTHETIC_DISTRACTOR
         pasted += int(synthetic.any())
         assert torch.equal((a[CAM] != b[CAM]).any(0) & ~synthetic, torch.zeros_like(synthetic))

@@ -14,11 +14,12 @@ TINY_ACT = [
 
 
 @pytest.fixture(scope="module")
-def stock_act_checkpoint(recorded_dataset, tmp_path_factory):
-    """A stock ACT trained 2 steps by lerobot-train on our dataset, with lerobot-train's own periodic env eval."""
+def stock_act_checkpoint(plain_dataset, tmp_path_factory):
+    """A stock ACT trained 2 steps by lerobot-train on a label-free recording, with lerobot-train's own
+    periodic env eval."""
     out = tmp_path_factory.mktemp("train") / "run"
     run_cli(
-        "lerobot-train", *TINY_ACT, "--dataset.repo_id=local/test_full_mixed", f"--dataset.root={recorded_dataset}",
+        "lerobot-train", *TINY_ACT, "--dataset.repo_id=local/test_plain", f"--dataset.root={plain_dataset}",
         "--batch_size=2", "--steps=2", "--save_freq=2", "--log_freq=1", "--num_workers=0",
         "--env.type=condground", "--env.task=PickPlaceRandomBin-v0", "--env.condition=full_mixed",
         "--env.episode_length=8", "--env_eval_freq=2", "--eval.n_episodes=1", "--eval.batch_size=1",
@@ -27,9 +28,7 @@ def stock_act_checkpoint(recorded_dataset, tmp_path_factory):
     ckpt = out / "checkpoints" / "last" / "pretrained_model"
     config = read_json(ckpt / "config.json")
     assert config["type"] == "act"
-    # Label columns reach the policy's input features only as unused STATE entries, never as cameras.
-    visual = [k for k, f in config["input_features"].items() if f["type"] == "VISUAL"]
-    assert visual == ["observation.images.top"]
+    assert set(config["input_features"]) == {"observation.images.top", "observation.state"}
     return ckpt
 
 

@@ -11,7 +11,15 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_condground.envs.assets import COLORS
 from lerobot_condground.envs.robot import MOTOR_NAMES
-from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION, phase_masks
+from lerobot_condground.labels import (
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+    PNG_LABEL_KEYS,
+    decode_labels,
+    phase_masks,
+)
 from lerobot_condground.record import PROVENANCE_FILE
 
 
@@ -20,6 +28,8 @@ def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_
     assert ds.meta.total_episodes == 2 and ds.fps == 20
     assert ds.meta.features["observation.state"]["names"] == list(MOTOR_NAMES)
     assert ds.meta.video_keys == ["observation.images.top"]
+    # Label images are PNG strings: cheap to fetch for every frame of an action chunk, skipped by stats.
+    assert all(ds.meta.features[key]["dtype"] == "string" and key not in ds.meta.stats for key in PNG_LABEL_KEYS)
     provenance = read_json(recorded_dataset / PROVENANCE_FILE)
     assert provenance["env"]["condition"] == "full_mixed" and len(provenance["episodes"]) == 2
     for ep in range(2):
@@ -31,13 +41,13 @@ def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_
         assert phases[0] == 0 and phases[-1] == 1 and np.all(np.diff(phases) >= 0)
         switch = start + int(np.argmax(phases))
         for idx, color in ((start, "red"), (switch - 1, "red"), (switch + 5, "blue")):
-            item = ds[idx]
+            item = decode_labels(ds[idx])
             relevant, competitors = phase_masks(item[OBS_SEGMENTATION], item[OBS_PHASE])
             relevant = relevant.numpy()
             assert relevant.sum() > 20 and not (relevant & competitors.numpy()).any()
             rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)[relevant].mean(axis=0)
             assert np.argmax(rgb) == np.argmax(COLORS[color]), (idx, rgb)
-        item = ds[start]
+        item = decode_labels(ds[start])
         seg = item[OBS_SEGMENTATION].numpy()
         assert set(np.unique(seg)) == set(range(9))
         rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)

@@ -66,7 +66,8 @@ class ACTModifiedConfig(ACTConfig):
     use_phase_predictor: bool | None = None
 
     # Attention regularization: this head of the last decoder layer's cross-attention is supervised,
-    # over the token grid of `attention_camera` (default: the first camera).
+    # over the token grid of `attention_camera`: the camera whose pixels `observation.segmentation`
+    # labels (default: the first camera), which is also the camera the copy-paste step augments.
     attention_head: int = 0
     attention_camera: str | None = None
     attention_pos_weight: float = 1.0  # lambda_+
@@ -157,17 +158,9 @@ class ACTModifiedConfig(ACTConfig):
     def _take_label_features(self) -> None:
         """Moves label features out of the inputs: they are targets and masks, not observations, and
         the normalizer must never see them. Only state and cameras stay inputs."""
-        segmentation = self.input_features.get(OBS_SEGMENTATION)
         self.label_keys = [key for key in LABEL_KEYS if key in self.input_features]
         for key in list(self.input_features):
             feature = self.input_features[key]
             is_camera = feature.type is FeatureType.VISUAL and key.startswith(f"{OBS_IMAGES}.")
             if key not in (OBS_STATE, OBS_ENV_STATE) and not is_camera:
                 del self.input_features[key]
-        camera = self.attention_camera or next(iter(self.image_features), None)
-        if segmentation is not None and camera in self.image_features:
-            if tuple(segmentation.shape) != tuple(self.image_features[camera].shape[-2:]):
-                raise ValueError(
-                    f"{OBS_SEGMENTATION} has shape {tuple(segmentation.shape)} but camera {camera} is "
-                    f"{tuple(self.image_features[camera].shape)}: the masks must label that camera's pixels"
-                )

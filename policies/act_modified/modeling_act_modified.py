@@ -131,7 +131,8 @@ class ACTModified(ACT):
         pos_embed = torch.stack(pos_embed, axis=0)
         encoder_out = self.encoder(tokens, pos_embed=pos_embed)
         cross_attention = self.decoder.layers[-1].multihead_attn
-        cross_attention.capture = with_attention
+        if with_attention:
+            cross_attention.capture = True
         decoder_in = torch.zeros(
             (cfg.chunk_size, batch_size, cfg.dim_model), dtype=pos_embed.dtype, device=pos_embed.device
         )
@@ -141,7 +142,8 @@ class ACTModified(ACT):
                 decoder_pos_embed=self.decoder_pos_embed.weight.unsqueeze(1),
             )
         finally:
-            cross_attention.capture = False
+            if with_attention:
+                cross_attention.capture = False
         actions = self.action_head(decoder_out.transpose(0, 1))
 
         if with_attention:

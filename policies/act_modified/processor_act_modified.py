@@ -1,5 +1,6 @@
-"""Pre/post-processors of `act_modified`: LeRobot's four stock steps, with the copy-paste augmentation
-between device placement and normalization (it pastes into [0, 1] frames on the training device)."""
+"""Pre/post-processors of `act_modified`: LeRobot's four stock steps, plus the decoding of the PNG label
+features right after renaming, and the copy-paste augmentation between device placement and
+normalization (it pastes into [0, 1] frames on the training device)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ from typing import Any
 import torch
 from lerobot.processor import PolicyAction, PolicyProcessorPipeline
 from lerobot.processor.factory import make_default_policy_processor_steps, make_policy_processor_pipelines
+
+from lerobot_condground.processors.decode_labels import DecodeLabelsStep
 
 from .configuration_act_modified import ACTModifiedConfig
 
@@ -19,6 +22,9 @@ def make_act_modified_pre_post_processors(
     steps = make_default_policy_processor_steps(config, dataset_stats, normalizer_device=config.device)
     augmentation = [config.make_copy_paste_step()] if config.use_copy_paste else []
     return make_policy_processor_pipelines(
-        input_steps=[steps.rename_observations, steps.add_batch_dim, steps.to_device, *augmentation, steps.normalize],
+        input_steps=[
+            steps.rename_observations, DecodeLabelsStep(), steps.add_batch_dim, steps.to_device, *augmentation,
+            steps.normalize,
+        ],
         output_steps=[steps.unnormalize, steps.to_cpu],
     )

@@ -1,0 +1,29 @@
+"""`condground_decode_labels`: turns the PNG label features of a recorded dataset (segmentation,
+prompt crops) back into uint8 tensors at the head of a policy's preprocessor.
+
+They are stored as PNG strings because LeRobot reads whole parquet rows for every frame of an action
+chunk (see `lerobot_condground.labels`); decoding only the current frame here keeps data loading as
+fast as for a dataset without labels. Values that already are tensors (prompts sent by the env or a
+robot at inference) pass through.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from lerobot.configs.types import PipelineFeatureType, PolicyFeature
+from lerobot.processor.pipeline import ObservationProcessorStep, ProcessorStepRegistry
+
+from lerobot_condground.labels import decode_labels
+
+
+@ProcessorStepRegistry.register(name="condground_decode_labels")
+@dataclass
+class DecodeLabelsStep(ObservationProcessorStep):
+    def observation(self, observation: dict) -> dict:
+        return decode_labels(observation)
+
+    def transform_features(
+        self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
+    ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
+        return features
