@@ -44,8 +44,10 @@ def _device(name: str) -> str:
     return name
 
 
-def _policy_config(name: str, cfg: PolicyBenchConfig, device: str):
+def _policy_config(name: str, cfg: PolicyBenchConfig, device: str, dataset_features: dict):
     from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.utils.constants import OBS_IMAGES, OBS_STATE
+    from lerobot.utils.feature_utils import dataset_to_policy_features
 
     from lerobot_condground.policies.act_modified.configuration_act_modified import ACTModifiedConfig
 
@@ -53,7 +55,14 @@ def _policy_config(name: str, cfg: PolicyBenchConfig, device: str):
         device=device, pretrained_backbone_weights=None, push_to_hub=False, dim_model=cfg.dim_model,
         dim_feedforward=cfg.dim_model * 25 // 4, chunk_size=cfg.chunk_size, n_action_steps=cfg.chunk_size,
     )
-    return ACTConfig(**common) if name == "act" else ACTModifiedConfig(variant=name, **common)
+    if name != "act":
+        return ACTModifiedConfig(variant=name, **common)
+    # Stock ACT gets the inputs act_modified keeps (state and cameras): it cannot take the label strings.
+    inputs = {
+        key: feature for key, feature in dataset_to_policy_features(dataset_features).items()
+        if key == OBS_STATE or key.startswith(f"{OBS_IMAGES}.")
+    }
+    return ACTConfig(input_features=inputs, **common)
 
 
 def _timed(fn, steps: int, device: str) -> float:
@@ -78,12 +87,12 @@ def bench_policies(repo_id: str, root: str, cfg: PolicyBenchConfig, rounds: int)
         dataset, batch_size=cfg.batch_size, shuffle=True, generator=torch.Generator().manual_seed(0)
     )
     batch = next(iter(loader))
-    observation = {k: v[:1] for k, v in batch.items() if k.startswith("observation.") and torch.is_tensor(v)}
+    observation = {k: v[:1] for k, v in batch.items() if k.startswith("observation.")}
 
     measures = {}
     for name in POLICIES:
         torch.manual_seed(0)
-        policy_cfg = _policy_config(name, cfg, device)
+        policy_cfg = _policy_config(name, cfg, device, meta.features)
         policy = make_policy(policy_cfg, ds_meta=meta)
         preprocessor, _ = make_pre_post_processors(policy_cfg, dataset_stats=meta.stats)
         optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-5)
