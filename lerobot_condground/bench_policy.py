@@ -1,7 +1,8 @@
 """Training-step and inference cost of the act_modified variants against stock ACT.
 
 All policies see the same batch of a dataset recorded by the bench, on the same device, timed in
-alternating rounds; ratios are taken round by round against stock ACT, then the median is reported.
+alternating rounds (each round starting with another policy); ratios are taken round by round
+against stock ACT, then the median is reported.
 A training step is what lerobot-train does per batch: preprocessor (copy-paste augmentation
 included), forward, backward, optimizer step. Inference is the preprocessor plus one action-chunk
 prediction at batch size 1, the latency a robot waits for whenever the action queue runs dry.
@@ -115,8 +116,10 @@ def bench_policies(repo_id: str, root: str, cfg: PolicyBenchConfig, rounds: int)
 
     train = {name: [] for name in POLICIES}
     inference = {name: [] for name in POLICIES}
-    for _ in range(rounds):
-        for name, (train_step, infer) in measures.items():
+    for round_ in range(rounds):
+        # Each round starts with another policy, so no policy always runs first (or after the same one).
+        for name in POLICIES[round_ % len(POLICIES):] + POLICIES[: round_ % len(POLICIES)]:
+            train_step, infer = measures[name]
             train[name].append(_timed(train_step, cfg.steps, device))
             inference[name].append(_timed(infer, cfg.steps, device))
 

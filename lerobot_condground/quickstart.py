@@ -69,7 +69,7 @@ def _run(command: list[str]) -> None:
     with subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
         for line in proc.stdout:
             lines.append(line)
-            if " step:" in line or "pc_success" in line:
+            if " step:" in line:  # lerobot-train's periodic log line
                 print("  " + line.rstrip()[-160:], flush=True)
     if proc.returncode != 0:
         raise RuntimeError(f"{Path(command[0]).name} failed ({proc.returncode}):\n{''.join(lines[-80:])}")
@@ -131,6 +131,7 @@ def _evaluate(cfg: QuickstartConfig, checkpoint: Path, condition: str) -> list[i
         f"--output_dir={out}",
     ])
     info = json.loads((out / "eval_info.json").read_text())
+    print(f"  {condition}: {info['overall']['n_episodes']} episodes, success {info['overall']['pc_success']:.0f} %")
     # The env's reward is the stage index, so an episode's max reward is the stage it reached.
     return [int(r) for r in info["per_task"][0]["metrics"]["max_rewards"]]
 

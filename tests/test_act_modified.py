@@ -239,3 +239,19 @@ def test_warm_start_from_an_incompatible_checkpoint_is_refused(tmp_path):
     other.save_pretrained(tmp_path)
     with pytest.raises(ValueError, match="init_from_act=.*does not fit"):
         make_policy(variant="standard", init_from_act=str(tmp_path))
+
+
+def test_prompts_are_encoded_once_per_episode_and_again_after_training():
+    policy = make_policy(variant="full")
+    policy.eval()
+    batch = observation(make_batch())
+    first = policy.predict_action_chunk(batch)
+    cache = policy.model._prompt_cache
+    assert cache is not None
+    assert torch.equal(policy.predict_action_chunk(batch), first) and policy.model._prompt_cache is cache
+    policy.train()
+    assert policy.model._prompt_cache is None
+    with torch.no_grad():
+        policy.model.encoder_img_feat_input_proj.weight.mul_(2.0)
+    policy.eval()
+    assert not torch.allclose(policy.predict_action_chunk(batch), first)

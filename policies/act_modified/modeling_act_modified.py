@@ -78,6 +78,8 @@ class ACTModified(ACT):
             self.phase_head = nn.Sequential(
                 nn.Linear(pooled + state, config.phase_head_dim), nn.ReLU(), nn.Linear(config.phase_head_dim, 2)
             )
+        self._prompt_cache: tuple[Tensor, Tensor] | None = None
+        self.register_load_state_dict_pre_hook(lambda module, *_: setattr(module, "_prompt_cache", None))
         if config.use_prompts:
             self.prompt_pos_embed = nn.Embedding(1, dim)
             self.prompt_kind_embed = nn.Embedding(2, dim)  # object or receptacle crop
@@ -193,10 +195,29 @@ class ACTModified(ACT):
                 "(--env.prompts=true, the default); a robot must provide them as observations."
             )
         crops = [prompt_as_image(batch[key]) for key in (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)]
-        crop = torch.where(phase.view(-1, 1, 1, 1) == 0, crops[0], crops[1])
-        crop = (crop - self.prompt_mean) / self.prompt_std
-        features = self.encoder_img_feat_input_proj(self.backbone(crop)["feature_map"])
-        return features.mean(dim=(2, 3)) + self.prompt_kind_embed(phase)
+        if self.training:
+            features = self._encode_prompts(torch.where(phase.view(-1, 1, 1, 1) == 0, crops[0], crops[1]))
+        else:
+            object_features, receptacle_features = self._episode_prompt_features(crops)
+            features = torch.where(phase.view(-1, 1) == 0, object_features, receptacle_features)
+        return features + self.prompt_kind_embed(phase)
+
+    def _encode_prompts(self, crops: Tensor) -> Tensor:
+        crops = (crops - self.prompt_mean) / self.prompt_std
+        return self.encoder_img_feat_input_proj(self.backbone(crops)["feature_map"]).mean(dim=(2, 3))
+
+    def _episode_prompt_features(self, crops: list[Tensor]) -> Tensor:
+        """(object, receptacle) features at inference. The crops stay the same for a whole episode, so
+        they are encoded once and reused until they change (or the weights may have: train/load)."""
+        both = torch.cat(crops)
+        cached = self._prompt_cache
+        if cached is None or cached[0].shape != both.shape or not torch.equal(cached[0], both):
+            self._prompt_cache = cached = (both, self._encode_prompts(both).view(2, len(crops[0]), -1))
+        return cached[1]
+
+    def train(self, mode: bool = True):
+        self._prompt_cache = None
+        return super().train(mode)
 
 
 def prompt_as_image(crop: Tensor) -> Tensor:
