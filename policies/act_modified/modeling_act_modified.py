@@ -216,7 +216,8 @@ class ACTModified(ACT):
         return cached[1]
 
     def train(self, mode: bool = True):
-        self._prompt_cache = None
+        if mode:  # weights may change from here on; eval() is called before every prediction and keeps it
+            self._prompt_cache = None
         return super().train(mode)
 
 
