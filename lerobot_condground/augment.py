@@ -144,7 +144,7 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
     camera = cfg.copy_paste.camera_key
     target = LeRobotDataset.create(
         cfg.output.repo_id, fps=source.meta.fps, features=features, root=out_root,
-        robot_type=source.meta.robot_type, use_videos=video, streaming_encoding=video,
+        robot_type=source.meta.robot_type, use_videos=video, streaming_encoding=False,
     )
     frames = pasted_frames = pasted_pixels = 0
     episodes = source.meta.episodes

@@ -177,11 +177,13 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
                 f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
                 f"choose another --dataset.root or record with the same settings to resume it"
             )
-        dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=True)
+        dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=False)
         return dataset, previous
+    # Not LeRobot's streaming encoder: when its queue is full (a busy CPU, our burst of add_frame calls)
+    # it drops frames with only a warning, and the video ends up shorter than the episode.
     dataset = LeRobotDataset.create(
         cfg.dataset.repo_id, fps=cfg.env.fps, features=features, root=root, robot_type="ur3e_sim",
-        use_videos=cfg.dataset.video, streaming_encoding=True,
+        use_videos=cfg.dataset.video, streaming_encoding=False,
     )
     return dataset, {}
 
@@ -255,7 +257,7 @@ def record(cfg: RecordConfig) -> dict:
             bar.update(1)
             if have % cfg.dataset.checkpoint_every == 0 and have < cfg.dataset.num_episodes:
                 dataset.finalize()
-                dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=True)
+                dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=False)
     finally:
         bar.close()
         # Whatever happened, what was saved is closed and readable.

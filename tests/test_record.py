@@ -122,3 +122,16 @@ def test_bad_record_flags_fail_before_any_work(tmp_path):
         out = run_cli("condground", "record", flag, f"--dataset.root={root}", check=False)
         assert out.returncode != 0 and fragment in out.stderr + out.stdout, out.stderr[-2000:]
         assert not root.exists()
+
+
+def test_every_frame_reaches_the_video(recorded_dataset):
+    import av
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("local/test_full_mixed", root=recorded_dataset)
+    for ep in range(ds.meta.total_episodes):
+        path = recorded_dataset / ds.meta.get_video_file_path(ep, "observation.images.top")
+        with av.open(str(path)) as container:
+            decoded = sum(1 for _ in container.decode(video=0))
+        episode = ds.meta.episodes[ep]
+        assert decoded >= episode["dataset_to_index"] - episode["dataset_from_index"], ep
