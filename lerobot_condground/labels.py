@@ -57,13 +57,13 @@ def decode_png(text: str) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if image.ndim == 3 else image
 
 
-def decode_labels(data: dict) -> dict:
-    """A copy of a frame or batch dict with its PNG label features as uint8 tensors ((H, W) per frame,
-    (B, H, W) for a batch's list of strings). Values that are already arrays pass through."""
+def decode_labels(data: dict, keys=PNG_LABEL_KEYS) -> dict:
+    """A copy of a frame or batch dict with its PNG label features `keys` as uint8 tensors ((H, W) per
+    frame, (B, H, W) for a batch's list of strings). Values that are already arrays pass through."""
     import torch
 
     out = dict(data)
-    for key in PNG_LABEL_KEYS:
+    for key in keys:
         value = out.get(key)
         if isinstance(value, str):
             out[key] = torch.from_numpy(decode_png(value))

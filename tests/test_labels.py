@@ -55,3 +55,11 @@ def test_decode_labels_batches_strings_and_passes_tensors():
 def test_decode_rejects_garbage():
     with pytest.raises(ValueError, match="not a base64 PNG"):
         decode_png("aGVsbG8=")
+
+
+def test_decode_step_takes_only_label_keys_and_decodes_only_those():
+    with pytest.raises(ValueError, match="observation.state"):
+        DecodeLabelsStep(keys=["observation.state"])
+    seg = encode_png(np.zeros((2, 2), np.uint8))
+    out = DecodeLabelsStep(keys=[OBS_PROMPT_OBJECT]).observation({OBS_SEGMENTATION: [seg]})
+    assert out[OBS_SEGMENTATION] == [seg]
