@@ -18,10 +18,13 @@ setup: system-deps $(STAMP)
 
 # Headless MuJoCo rendering needs EGL with Mesa's software driver; torchcodec (LeRobot's video
 # decoder) needs FFmpeg's shared libraries, else LeRobot falls back to slower PyAV with a traceback.
+# The report test opens the HTML report in Debian's headless Chromium through its ChromeDriver.
 SYSTEM_LIBS := libEGL_mesa.so.0 libavdevice.so.59 libavfilter.so.8
-SYSTEM_PKGS := libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libavutil57 libavcodec59 libavformat59 libavdevice59 libavfilter8 libswscale6 libswresample4
+SYSTEM_BINS := chromium chromedriver
+SYSTEM_PKGS := libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libavutil57 libavcodec59 libavformat59 libavdevice59 libavfilter8 libswscale6 libswresample4 chromium chromium-driver
 system-deps:
 	@missing=0; for lib in $(SYSTEM_LIBS); do ldconfig -p | grep -q "$$lib" || missing=1; done; \
+	for bin in $(SYSTEM_BINS); do command -v $$bin >/dev/null || missing=1; done; \
 	if [ $$missing = 1 ]; then \
 		echo "Installing system libraries: $(SYSTEM_PKGS)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(SYSTEM_PKGS) >/dev/null; \

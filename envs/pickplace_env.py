@@ -185,6 +185,20 @@ class PickPlaceEnv(gym.Env):
             for e in self.layout.entities
         ]
 
+    def swap_prompt(self, role: str, label: int) -> np.ndarray:
+        """Make the `role` prompt (object or receptacle) show entity `label` instead of the target, until
+        the next reset: the prompt-swap probe's intervention. The crop is rendered like the target's and
+        returned, for the observation already handed out."""
+        if role not in ("object", "receptacle"):
+            raise ValueError(f"Unknown prompt role {role!r}; allowed: object, receptacle")
+        entity = next((e for e in self.layout.entities if e.label == label), None)
+        if entity is None or entity.asset.role != role:
+            allowed = [e.label for e in self.layout.entities if e.asset.role == role]
+            raise ValueError(f"Entity {label!r} is not a {role} of this scene; {role} labels here: {allowed}")
+        rgb, labels = self._unoccluded_view()
+        crop = self._prompt_crops[f"prompt_{role}"] = crop_entity(rgb, labels == label)
+        return crop.copy()
+
     def render_segmentation(self, camera: str = "top", scene_option: mujoco.MjvOption | None = None) -> np.ndarray:
         """Entity labels per pixel (uint8), from MuJoCo's segmentation rendering."""
         r = self._get_renderer()
@@ -247,14 +261,17 @@ class PickPlaceEnv(gym.Env):
     def _info(self, physics_unstable: bool = False) -> dict:
         return {**self.tracker.info(self.data), "physics_unstable": physics_unstable}
 
-    def _render_prompt_crops(self) -> dict[str, np.ndarray]:
-        """Positionless appearance crops of the two targets, rendered with the robot hidden so they are
-        never occluded: a square box around the entity's mask, resized to PROMPT_SIZE."""
+    def _unoccluded_view(self) -> tuple[np.ndarray, np.ndarray]:
+        """RGB and entity labels of the scene camera with the robot hidden."""
         option = mujoco.MjvOption()
         option.geomgroup[robot.ARM_GROUP] = 0
         option.geomgroup[robot.GRIPPER_GROUP] = 0
-        rgb = self._render_rgb("top", option)
-        labels = self.render_segmentation("top", option)
+        return self._render_rgb("top", option), self.render_segmentation("top", option)
+
+    def _render_prompt_crops(self) -> dict[str, np.ndarray]:
+        """Positionless appearance crops of the two targets, rendered with the robot hidden so they are
+        never occluded: a square box around the entity's mask, resized to PROMPT_SIZE."""
+        rgb, labels = self._unoccluded_view()
         return {
             "prompt_object": crop_entity(rgb, labels == 1),
             "prompt_receptacle": crop_entity(rgb, labels == 2),

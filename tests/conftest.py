@@ -50,3 +50,49 @@ def plain_dataset(tmp_path_factory) -> Path:
 
 def read_json(path: Path) -> dict:
     return json.loads(Path(path).read_text())
+
+
+def make_checkpoint(path: Path, variant: str = "full", height: int = 96, width: int = 128, seed: int = 0) -> Path:
+    """A small act_modified checkpoint with random weights, saved the way lerobot-train saves one
+    (config, weights, processors): what the diagnosis commands load. It has not learned anything."""
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION
+    from lerobot_condground.policies.act_modified.configuration_act_modified import ACTModifiedConfig
+    from lerobot_condground.policies.act_modified.modeling_act_modified import ACTModifiedPolicy
+
+    torch.manual_seed(seed)
+    features = {
+        "observation.images.top": PolicyFeature(FeatureType.VISUAL, (3, height, width)),
+        "observation.state": PolicyFeature(FeatureType.STATE, (7,)),
+        OBS_SEGMENTATION: PolicyFeature(FeatureType.STATE, (height, width)),
+        OBS_PHASE: PolicyFeature(FeatureType.STATE, (1,)),
+        OBS_PROMPT_OBJECT: PolicyFeature(FeatureType.STATE, (64, 64, 3)),
+        OBS_PROMPT_RECEPTACLE: PolicyFeature(FeatureType.STATE, (64, 64, 3)),
+    }
+    cfg = ACTModifiedConfig(
+        variant=variant, input_features=features, output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
+        dim_model=32, n_heads=4, dim_feedforward=64, n_encoder_layers=1, n_vae_encoder_layers=1, chunk_size=10,
+        n_action_steps=10, pretrained_backbone_weights=None, device="cpu",
+    )
+    policy = ACTModifiedPolicy(cfg)
+    stats = {
+        "observation.images.top": {"mean": torch.full((3, 1, 1), 0.45), "std": torch.full((3, 1, 1), 0.25)},
+        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
+        "action": {"mean": torch.tensor([0.0, -1.2, 1.3, -1.6, -1.57, 0.0, 0.3]), "std": torch.full((7,), 0.3)},
+    }
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=stats)
+    path.mkdir(parents=True, exist_ok=True)
+    for part in (policy, preprocessor, postprocessor):
+        part.save_pretrained(path)
+    (path / "train_config.json").write_text(json.dumps({"seed": seed}))
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoints(tmp_path_factory) -> list[Path]:
+    """Two act_modified/full checkpoints (training seeds 0 and 1), random weights, 96x128 camera."""
+    root = tmp_path_factory.mktemp("checkpoints")
+    return [make_checkpoint(root / f"seed{seed}", seed=seed) for seed in (0, 1)]
