@@ -4,6 +4,7 @@
     condground bench       simulation, recording and policy throughput
     condground augment     a LeRobotDataset with copy-paste distractors -> a new LeRobotDataset
     condground quickstart  record demos, train and evaluate a small act_modified, print stage tables
+    condground sweep       evaluate checkpoints over a grid of conditions -> results.parquet
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ COMMANDS = {
     "bench": "Measure physics, rendering, env-step, recording and act_modified-vs-ACT throughput here.",
     "augment": "Write a copy of a LeRobotDataset with synthetic distractors pasted in (copy-paste augmentation).",
     "quickstart": "Record demos, train a small act_modified (lerobot-train), evaluate it (lerobot-eval), print stages.",
+    "sweep": "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",
 }
 
 
@@ -63,6 +65,21 @@ def main(argv: list[str] | None = None) -> int:
 
         cfg = draccus.parse(QuickstartConfig, args=args, prog="condground quickstart")
         run_quickstart(cfg)
+    else:
+        return _diagnosis_command(command, args)
+    return 0
+
+
+def _diagnosis_command(command: str, args: list[str]) -> int:
+    """The diagnosis commands: bad input (grid, checkpoint, results directory) is one line, no traceback."""
+    try:
+        if command == "sweep":
+            from lerobot_condground.sweep import SweepConfig, run_sweep
+
+            run_sweep(draccus.parse(SweepConfig, args=args, prog="condground sweep"))
+    except (ValueError, FileNotFoundError) as err:
+        print(f"condground {command}: {err}", file=sys.stderr)
+        return 2
     return 0
 
 
