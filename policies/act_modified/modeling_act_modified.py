@@ -59,13 +59,20 @@ class RecordingMultiheadAttention(nn.MultiheadAttention):
         """(B, queries, keys) softmax attention of `head` for the captured inputs, before dropout."""
         query, key = self.captured
         self.captured = None
-        dim = self.embed_dim // self.num_heads
-        rows = slice(head * dim, (head + 1) * dim)
-        w_q, w_k = self.in_proj_weight[: self.embed_dim][rows], self.in_proj_weight[self.embed_dim : 2 * self.embed_dim][rows]
-        b_q, b_k = self.in_proj_bias[: self.embed_dim][rows], self.in_proj_bias[self.embed_dim : 2 * self.embed_dim][rows]
-        q = F.linear(query, w_q, b_q)  # (T, B, d)
-        k = F.linear(key, w_k, b_k)  # (S, B, d)
-        return torch.einsum("tbd,sbd->bts", q, k).div(math.sqrt(dim)).softmax(-1)
+        return head_attention(self, query, key, head)
+
+
+def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head: int) -> Tensor:
+    """(B, queries, keys) softmax attention of one head of any nn.MultiheadAttention (packed in_proj,
+    sequence-first inputs as ACT uses them: query (T, B, E), key (S, B, E)), before dropout."""
+    embed_dim = mha.embed_dim
+    dim = embed_dim // mha.num_heads
+    rows = slice(head * dim, (head + 1) * dim)
+    w_q, w_k = mha.in_proj_weight[:embed_dim][rows], mha.in_proj_weight[embed_dim : 2 * embed_dim][rows]
+    b_q, b_k = mha.in_proj_bias[:embed_dim][rows], mha.in_proj_bias[embed_dim : 2 * embed_dim][rows]
+    q = F.linear(query, w_q, b_q)  # (T, B, d)
+    k = F.linear(key, w_k, b_k)  # (S, B, d)
+    return torch.einsum("tbd,sbd->bts", q, k).div(math.sqrt(dim)).softmax(-1)
 
 
 class ACTModified(ACT):
