@@ -54,6 +54,11 @@ def checkpoint_file(path: str, name: str) -> Path | None:
         return Path(hf_hub_download(path, name))
     except EntryNotFoundError:
         return None
+    except Exception as err:  # invalid id, not cached while offline, no such repo, network
+        raise FileNotFoundError(
+            f"Policy path {path!r} is not a checkpoint directory and cannot be fetched as a hub id "
+            f"({type(err).__name__}: {str(err).splitlines()[0]}); or use `{EXPERT}` for the scripted expert"
+        ) from None
 
 
 def checkpoint_hash(path: str) -> str:

@@ -5,6 +5,7 @@
     condground augment     a LeRobotDataset with copy-paste distractors -> a new LeRobotDataset
     condground quickstart  record demos, train and evaluate a small act_modified, print stage tables
     condground sweep       evaluate checkpoints over a grid of conditions -> results.parquet
+    condground probe       prompt-swap probe of a prompt-bearing checkpoint
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ COMMANDS = {
     "augment": "Write a copy of a LeRobotDataset with synthetic distractors pasted in (copy-paste augmentation).",
     "quickstart": "Record demos, train a small act_modified (lerobot-train), evaluate it (lerobot-eval), print stages.",
     "sweep": "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",
+    "probe": "Prompt-swap probe: how often a competitor's crop as prompt makes the policy select the competitor.",
 }
 
 
@@ -77,6 +79,10 @@ def _diagnosis_command(command: str, args: list[str]) -> int:
             from lerobot_condground.sweep import SweepConfig, run_sweep
 
             run_sweep(draccus.parse(SweepConfig, args=args, prog="condground sweep"))
+        elif command == "probe":
+            from lerobot_condground.probe import ProbeConfig, run_probe
+
+            run_probe(draccus.parse(ProbeConfig, args=args, prog="condground probe"))
     except (ValueError, FileNotFoundError) as err:
         print(f"condground {command}: {err}", file=sys.stderr)
         return 2

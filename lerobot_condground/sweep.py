@@ -187,7 +187,12 @@ def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[Loa
         "observation_width": cfg.env.observation_width,
     }
     return {"kind": "sweep", "grid": grid, "checkpoints": [c.describe() for c in checkpoints],
-            "versions": versions(), "command": ["condground", "sweep", *sys.argv[2:]] if sys.argv[1:2] == ["sweep"] else sys.argv}
+            "versions": versions(), "command": command_line()}
+
+
+def command_line() -> list[str]:
+    """The command that is running, as the user typed it (console script name first)."""
+    return ["condground", *sys.argv[1:]] if Path(sys.argv[0]).name == "condground" else list(sys.argv)
 
 
 def check_same_sweep(root: Path, manifest: dict) -> None:
@@ -275,7 +280,7 @@ def run_unit(job: dict) -> list[dict]:
     return rows
 
 
-def _jobs(cfg: SweepConfig, units: list[Unit], checkpoints: list[LoadedPolicy]) -> list[dict]:
+def make_jobs(cfg: SweepConfig, units: list[Unit], checkpoints: list[LoadedPolicy]) -> list[dict]:
     jobs = []
     for unit in units:
         loaded = checkpoints[unit.checkpoint]
@@ -395,7 +400,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
         bar.set_postfix(success=f"{successes[0]}/{successes[1]}")
 
     try:
-        execute(_jobs(cfg, todo, checkpoints), cfg.launcher, workers, threads, cfg.ray_address, on_done)
+        execute(make_jobs(cfg, todo, checkpoints), cfg.launcher, workers, threads, cfg.ray_address, on_done)
     finally:
         bar.close()
     elapsed = time.perf_counter() - started
