@@ -1,4 +1,4 @@
-"""`condground bench`: simulation, recording and policy throughput on this machine.
+"""`condground bench`: simulation, recording, policy and sweep throughput on this machine.
 
 Each figure is measured in the same process, one after the other, on the same scene, so the ratios
 (env step rate over render-only fps) compare like with like.
@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lerobot_condground.bench_policy import PolicyBenchConfig
+from lerobot_condground.bench_sweep import SweepBenchConfig
 
 
 @dataclass
@@ -31,6 +32,8 @@ class BenchConfig:
     record_episodes: int = 3
     # Training-step and inference cost of act_modified against stock ACT, on the recorded episodes.
     policy: PolicyBenchConfig = field(default_factory=PolicyBenchConfig)
+    # Sweep rollouts per minute and the speed-up with parallel workers.
+    sweep: SweepBenchConfig = field(default_factory=SweepBenchConfig)
     # Print one JSON object instead of a table.
     json: bool = False
 
@@ -149,6 +152,13 @@ def run_bench(cfg: BenchConfig) -> dict:
             from lerobot_condground.bench_policy import bench_policies
 
             results |= bench_policies("local/bench", f"{tmp}/ds", cfg.policy, cfg.rounds)
+        if cfg.sweep.enable:
+            from pathlib import Path
+
+            from lerobot_condground.bench_sweep import bench_sweep, save_bench_checkpoint
+
+            checkpoint = save_bench_checkpoint("local/bench", f"{tmp}/ds", Path(tmp) / "checkpoint", cfg.sweep)
+            results |= bench_sweep(checkpoint, cfg.task, cfg.condition, cfg.sweep, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
