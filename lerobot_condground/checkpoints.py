@@ -26,6 +26,7 @@ class LoadedPolicy:
     hash: str
     training_seed: int | None
     cameras: dict[str, tuple[int, int]] = field(default_factory=dict)  # name -> (height, width)
+    vectors: dict[str, tuple[int, ...]] = field(default_factory=dict)  # state and action shapes
     needs_prompts: bool = False
     policy: Any = None
     preprocessor: Any = None
@@ -93,6 +94,8 @@ def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> 
         for key, feature in config.get("input_features", {}).items()
         if key.startswith(CAMERA_PREFIX) and feature.get("type") == "VISUAL"
     }
+    vectors = {key: tuple(feature["shape"]) for group in ("input_features", "output_features")
+               for key, feature in config.get(group, {}).items() if key in ("observation.state", "action")}
     train_config = checkpoint_file(path, "train_config.json")
     seed = json.loads(train_config.read_text()).get("seed") if train_config else None
     return LoadedPolicy(
@@ -103,6 +106,7 @@ def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> 
         hash=checkpoint_hash(path),
         training_seed=seed if seed is not None else index,
         cameras=cameras,
+        vectors=vectors,
         needs_prompts=bool(config.get("use_prompts")),
     )
 
@@ -126,6 +130,10 @@ def check_env_fits(loaded: LoadedPolicy, env_cfg) -> None:
                 problems.append(f"camera {name!r} at {size[0]}x{size[1]} (env renders {rendered[0]}x{rendered[1]})")
     if not loaded.cameras:
         problems.append("no camera input at all")
+    for key, shape in loaded.vectors.items():
+        feature = env_features.get(key)
+        if feature is None or tuple(feature.shape) != tuple(shape):
+            problems.append(f"{key} of shape {tuple(shape)} (env: {tuple(feature.shape) if feature else 'none'})")
     if problems:
         raise ValueError(f"Checkpoint {loaded.path!r} does not fit the env {env_cfg.task}: it expects " + "; ".join(problems))
 

@@ -3,9 +3,9 @@ launchers giving the same rows, and one clear error per kind of bad input."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -89,6 +89,13 @@ def test_bad_input_is_one_clear_error(tmp_path, tiny_checkpoints):
         run_sweep(sweep_config([ckpt], tmp_path / "a", conditions="clean,object_colour_1"))
     with pytest.raises(ValueError, match=r"does not fit .*camera 'top' at 96x128 \(env renders 64x96\)"):
         run_sweep(sweep_config([ckpt], tmp_path / "b", env={"observation_height": 64, "observation_width": 96}))
+    other_robot = tmp_path / "other_robot"
+    shutil.copytree(ckpt, other_robot)
+    config = json.loads((other_robot / "config.json").read_text())
+    config["output_features"]["action"]["shape"] = [14]
+    (other_robot / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=r"expects action of shape \(14,\) \(env: \(7,\)\)"):
+        run_sweep(sweep_config([other_robot], tmp_path / "b2"))
     with pytest.raises(FileNotFoundError, match="no/such/checkpoint"):
         run_sweep(sweep_config([tmp_path / "no/such/checkpoint"], tmp_path / "c"))
 
