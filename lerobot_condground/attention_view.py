@@ -31,10 +31,9 @@ from lerobot_condground.diagnose import (
     ACTProbe,
     DiagnosisEnvConfig,
     DiagnosisPolicyConfig,
-    command_line,
     load_act_family,
-    versions,
 )
+from lerobot_condground.provenance import command_line, versions
 
 logger = logging.getLogger(__name__)
 
@@ -186,6 +185,7 @@ class VideoWriter:
         if pad_h or pad_w:
             rgb = np.pad(rgb, ((0, pad_h), (0, pad_w), (0, 0)), mode="edge")
         if self.container is None:
+            av.logging.set_level(av.logging.ERROR)  # x264 prints its settings and statistics otherwise
             self.container = av.open(str(self.path), mode="w")
             options = {"crf": "18", "preset": "veryfast"} if self.codec == "libx264" else {}
             self.stream = self.container.add_stream(self.codec, rate=self.fps, options=options)

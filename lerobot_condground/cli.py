@@ -6,6 +6,9 @@
     condground quickstart  record demos, train and evaluate a small act_modified, print stage tables
     condground sweep       evaluate checkpoints over a grid of conditions -> results.parquet
     condground probe       prompt-swap probe of a prompt-bearing checkpoint
+    condground diagnose    representation diagnostics on matched clean/distractor frames (Table II, Figure 2)
+    condground attention   per-step cross-attention overlay video of one episode
+    condground report      one HTML (and Markdown) report from sweep and diagnosis outputs
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ COMMANDS = {
     "quickstart": "Record demos, train a small act_modified (lerobot-train), evaluate it (lerobot-eval), print stages.",
     "sweep": "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",
     "probe": "Prompt-swap probe: how often a competitor's crop as prompt makes the policy select the competitor.",
+    "diagnose": "Representation diagnostics of an ACT-family checkpoint on matched clean/distractor frames.",
+    "attention": "Per-step cross-attention of one head overlaid on the camera, as a video with stills.",
+    "report": "Turn sweep, diagnose, probe and attention outputs into one HTML + Markdown report.",
 }
 
 
@@ -83,6 +89,19 @@ def _diagnosis_command(command: str, args: list[str]) -> int:
             from lerobot_condground.probe import ProbeConfig, run_probe
 
             run_probe(draccus.parse(ProbeConfig, args=args, prog="condground probe"))
+        elif command == "diagnose":
+            from lerobot_condground.diagnose import DiagnoseConfig, run_diagnose
+
+            run_diagnose(draccus.parse(DiagnoseConfig, args=args, prog="condground diagnose"))
+        elif command == "attention":
+            from lerobot_condground.attention_view import AttentionConfig, run_attention
+
+            run_attention(draccus.parse(AttentionConfig, args=args, prog="condground attention"))
+        elif command == "report":
+            from lerobot_condground.report import build_report, parse_report_args
+
+            html, markdown = build_report(parse_report_args(args))
+            print(f"report: {html} and {markdown}")
     except (ValueError, FileNotFoundError) as err:
         print(f"condground {command}: {err}", file=sys.stderr)
         return 2

@@ -31,12 +31,12 @@ from __future__ import annotations
 
 import json
 import logging
-import platform
 from dataclasses import dataclass, field, replace
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
+
+from lerobot_condground.provenance import command_line, versions
 
 logger = logging.getLogger(__name__)
 
@@ -113,32 +113,6 @@ class DiagnoseConfig:
 
 
 # ---------------------------------------------------------------------------------------------- shared helpers
-def versions() -> dict:
-    out = {"python": platform.python_version()}
-    for name, dist in (("lerobot", "lerobot"), ("torch", "torch"), ("mujoco", "mujoco"),
-                       ("lerobot_policy_condground", "lerobot_policy_condground")):
-        try:
-            out[name] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            out[name] = None
-    return out
-
-
-def command_line(subcommand: str, cfg) -> list[str]:
-    """The `condground <subcommand> --group.key=value ...` line that reproduces cfg."""
-    import draccus
-
-    def flatten(prefix: str, value) -> list[str]:
-        if isinstance(value, dict):
-            return [arg for key, sub in value.items() for arg in flatten(f"{prefix}{key}.", sub)]
-        if value is None:
-            return []
-        text = json.dumps(value) if isinstance(value, bool) else str(value)
-        return [f"--{prefix[:-1]}={text}"]
-
-    return ["condground", subcommand, *flatten("", draccus.encode(cfg))]
-
-
 def check_act_family(loaded) -> None:
     """ACT or any policy whose config subclasses LeRobot's ACTConfig (act_modified)."""
     from lerobot.configs.policies import PreTrainedConfig

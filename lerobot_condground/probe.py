@@ -22,12 +22,11 @@ from lerobot_condground.sweep import (
     SweepEnvConfig,
     SweepEvalConfig,
     Unit,
-    command_line,
     make_jobs,
     env_spec,
     execute,
-    versions,
 )
+from lerobot_condground.provenance import command_line, versions
 
 ROLES = ("object", "receptacle")
 SELECTED = {"object": "selected_competitor_object", "receptacle": "placed_in_competitor_receptacle"}
@@ -124,7 +123,7 @@ def run_probe(cfg: ProbeConfig) -> Path:
         "difference": paired_difference(target.to_numpy(bool), swapped.to_numpy(bool)),
         "success": {p: rate(int(frame[frame.prompt == p].success.sum()), int((frame.prompt == p).sum())) for p in ("target", "swapped")},
         "paper": PAPER,
-        "command": command_line(),
+        "command": command_line("probe", cfg),
         "versions": versions(),
     }
     write_table(frame, out / "results.parquet", metadata=summary)

@@ -3,7 +3,9 @@
 1. records a few expert demonstrations of each task (LeRobotDatasets with masks, phases, prompts),
 2. trains a small `act_modified` (variant `full`) on Task 1 with the stock `lerobot-train`,
 3. evaluates it with the stock `lerobot-eval` under `clean` and `full_mixed`,
-4. prints the stage table of the policy next to the scripted expert's.
+4. prints the stage table of the policy next to the scripted expert's,
+5. runs the diagnosis suite small: a sweep (policy and expert over four conditions), the
+   representation diagnostics, the prompt-swap probe and an attention video, then writes the report.
 
 Everything runs at a small camera resolution so a CPU gets through it; a few demonstrations and
 a few hundred steps make a pipeline check, not a learning result. Rerunning reuses the datasets
@@ -42,6 +44,18 @@ class QuickstartEvalConfig:
 
 
 @dataclass
+class QuickstartDiagnosisConfig:
+    enable: bool = True
+    conditions: str = "clean,object_color_1,receptacle_shape_1,full_mixed"
+    # Sweep rollouts per condition (one evaluation seed), probe layouts, diagnose episode pairs.
+    episodes: int = 4
+    probe_episodes: int = 4
+    pairs: int = 2
+    frame_stride: int = 4
+    workers: int | None = None
+
+
+@dataclass
 class QuickstartConfig:
     # Datasets land in <output_dir>/datasets/<task>, the policy in <output_dir>/train.
     output_dir: str = "outputs/quickstart"
@@ -53,6 +67,7 @@ class QuickstartConfig:
     observation_width: int = 128
     train: QuickstartTrainConfig = field(default_factory=QuickstartTrainConfig)
     eval: QuickstartEvalConfig = field(default_factory=QuickstartEvalConfig)
+    diagnosis: QuickstartDiagnosisConfig = field(default_factory=QuickstartDiagnosisConfig)
     progress: bool = True
 
 
@@ -149,4 +164,51 @@ def run_quickstart(cfg: QuickstartConfig) -> list:
              for condition in CONDITIONS]
     print(f"\n{TRAIN_TASK}: stage metrics of the trained policy and of the scripted expert")
     print(format_table(rows, first_column="policy"))
+    if cfg.diagnosis.enable:
+        _diagnose(cfg, checkpoint)
     return rows
+
+
+def _diagnose(cfg: QuickstartConfig, checkpoint: Path) -> Path:
+    """The diagnosis suite at laptop size; outputs are rebuilt on every run (they follow the checkpoint)."""
+    import shutil
+
+    from lerobot_condground.attention_view import AttentionConfig, AttentionOptions, run_attention
+    from lerobot_condground.diagnose import DiagnoseConfig, DiagnoseOptions, DiagnosisEnvConfig, DiagnosisPolicyConfig, run_diagnose
+    from lerobot_condground.probe import ProbeConfig, ProbePolicyConfig, ProbeSettings, run_probe
+    from lerobot_condground.report import ReportConfig, build_report
+    from lerobot_condground.sweep import SweepConfig, SweepEnvConfig, SweepEvalConfig, SweepGridConfig, SweepPolicyConfig, run_sweep
+
+    d = cfg.diagnosis
+    out = Path(cfg.output_dir) / "diagnosis"
+    shutil.rmtree(out, ignore_errors=True)
+    length = cfg.eval.episode_length
+    print("\nDiagnosis: sweep, representation diagnostics, prompt-swap probe, attention video, report", flush=True)
+    run_sweep(SweepConfig(
+        policy=SweepPolicyConfig(paths=f"{checkpoint},expert"),
+        env=SweepEnvConfig(task=TRAIN_TASK, episode_length=length),
+        sweep=SweepGridConfig(conditions=d.conditions),
+        eval=SweepEvalConfig(seeds=1, n_episodes=d.episodes, batch_size=d.episodes),
+        output_dir=str(out / "sweep"), workers=d.workers, progress=cfg.progress,
+    ))
+    policy = DiagnosisPolicyConfig(path=str(checkpoint), device="cpu")
+    run_diagnose(DiagnoseConfig(
+        policy=policy, env=DiagnosisEnvConfig(task=TRAIN_TASK),  # the expert's episodes, at full length
+        diagnose=DiagnoseOptions(pairs=d.pairs, frame_stride=d.frame_stride),
+        output_dir=str(out / "diagnose"), sweep_dir=str(out / "sweep"), progress=cfg.progress,
+    ))
+    run_probe(ProbeConfig(
+        policy=ProbePolicyConfig(path=str(checkpoint)), env=SweepEnvConfig(task=TRAIN_TASK, episode_length=length),
+        probe=ProbeSettings(episodes=d.probe_episodes, batch_size=d.probe_episodes),
+        output_dir=str(out / "probe"), workers=d.workers, progress=cfg.progress,
+    ))
+    run_attention(AttentionConfig(
+        policy=policy, env=DiagnosisEnvConfig(task=TRAIN_TASK, condition="full_mixed", episode_length=length),
+        attention=AttentionOptions(), output_dir=str(out / "attention"), progress=cfg.progress,
+    ))
+    html, markdown = build_report(ReportConfig(
+        input_dir=[str(out / name) for name in ("sweep", "diagnose", "probe", "attention")],
+        output=str(out / "report" / "report.html"), title="condground quickstart: diagnosis report",
+    ))
+    print(f"\nReport: {html} (Markdown: {markdown})")
+    return html

@@ -44,7 +44,7 @@ CELL = ("policy_label", "task", "condition")
 # layout_seed is implied by (eval_seed, episode) within one sweep; keying on it as well turns rows of sweeps
 # run with different seed offsets into unmatched rows (refused) instead of pairs of different layouts.
 CONDITION_PAIRING = ("checkpoint_hash", "eval_seed", "episode", "layout_seed", "prompt")
-VARIANT_PAIRING = ("task", "condition", "training_seed", "eval_seed", "episode", "layout_seed", "prompt")
+VARIANT_PAIRING = ("task", "condition", "training_seed_index", "eval_seed", "episode", "layout_seed", "prompt")
 
 
 def wilson_interval(k, n, alpha: float = ALPHA) -> tuple[np.ndarray, np.ndarray]:
@@ -207,12 +207,14 @@ def condition_differences(df: pd.DataFrame, metric: str = "success", reference: 
 
 def variant_differences(df: pd.DataFrame, baseline_label: str, metric: str = "success") -> pd.DataFrame:
     """policy − baseline for each other policy_label/task/condition, pairing episodes on task,
-    condition, training seed, eval seed, episode index, layout seed and prompt: the checkpoints differ,
-    the layout and the seed index are shared. Cells the baseline did not run are skipped; cells with keys that
+    condition, training-seed index (the k-th smallest training seed of each policy: two variants
+    trained with seeds 0,1,2 and 1000,1001,1002 still pair), eval seed, episode index, layout seed and
+    prompt: the checkpoints differ, the layout and the seed index are shared. Cells the baseline did not run are skipped; cells with keys that
     do not match one to one raise ValueError naming the cell."""
     column = _pairable_column(metric)
     if baseline_label not in set(df["policy_label"]):
         raise ValueError(f"Baseline {baseline_label!r} is not among the policy labels {sorted(set(df['policy_label']))}")
+    df = df.assign(training_seed_index=df.groupby(["policy_label", "task"])["training_seed"].rank(method="dense").astype(int) - 1)
     base = df[df["policy_label"] == baseline_label]
     rows = []
     for (label, task, condition), cell in df[df["policy_label"] != baseline_label].groupby(list(CELL), sort=True):

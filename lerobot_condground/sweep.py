@@ -19,18 +19,16 @@ from __future__ import annotations
 import json
 import logging
 import os
-import platform
 import re
-import sys
 import time
 from dataclasses import asdict, dataclass, field
-from importlib.metadata import version
 from pathlib import Path
 
 from tqdm import tqdm
 
 from lerobot_condground.checkpoints import LoadedPolicy, check_env_fits, describe_checkpoint
 from lerobot_condground.conditions import PAPER_GRID, ConditionSpec, check_task
+from lerobot_condground.provenance import command_line, versions
 from lerobot_condground.results import COLUMNS, read_table, write_table
 from lerobot_condground.rollout import EnvSpec
 
@@ -161,16 +159,6 @@ def layout_seed(cfg: SweepEvalConfig, eval_seed: int, episode: int) -> int:
     return cfg.seed_offset + eval_seed * EPISODES_PER_SEED_LIMIT + episode
 
 
-def versions() -> dict:
-    out = {"python": platform.python_version()}
-    for package in ("lerobot", "torch", "mujoco", "lerobot_policy_condground"):
-        try:
-            out[package] = version(package)
-        except Exception:
-            out[package] = "not installed"
-    return out
-
-
 def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[LoadedPolicy]) -> dict:
     grid = {
         "task": cfg.env.task,
@@ -187,12 +175,8 @@ def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[Loa
         "observation_width": cfg.env.observation_width,
     }
     return {"kind": "sweep", "grid": grid, "checkpoints": [c.describe() for c in checkpoints],
-            "versions": versions(), "command": command_line()}
+            "versions": versions(), "command": command_line("sweep", cfg)}
 
-
-def command_line() -> list[str]:
-    """The command that is running, as the user typed it (console script name first)."""
-    return ["condground", *sys.argv[1:]] if Path(sys.argv[0]).name == "condground" else list(sys.argv)
 
 
 def check_same_sweep(root: Path, manifest: dict) -> None:

@@ -21,7 +21,8 @@ from lerobot_condground.attention_view import (
     resolve_target,
     run_attention,
 )
-from lerobot_condground.diagnose import DiagnosisEnvConfig, DiagnosisPolicyConfig, command_line, load_act_family
+from lerobot_condground.diagnose import DiagnosisEnvConfig, DiagnosisPolicyConfig, load_act_family
+from lerobot_condground.provenance import command_line
 from lerobot_condground.rollout import policy_batch, run_episodes
 
 STEPS = 23  # chunks of 10 actions: 3 chunk predictions

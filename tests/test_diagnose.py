@@ -125,7 +125,7 @@ def test_matched_frames_differ_only_by_competitors(tiny_checkpoints):
 def test_flags_parse_and_command_round_trips():
     import draccus
 
-    from lerobot_condground.diagnose import command_line
+    from lerobot_condground.provenance import command_line
 
     cfg = draccus.parse(DiagnoseConfig, args=[
         "--policy.path=some/ckpt", "--env.task=PickPlaceRandomBin-v0", "--output_dir=d", "--diagnose.pairs=3",

@@ -5,6 +5,8 @@ from importlib.metadata import distribution
 
 from conftest import run_cli
 
+from lerobot_condground.results import read_table
+
 
 def test_distribution_name_keeps_underscores_for_lerobot_discovery():
     assert distribution("lerobot_policy_condground").metadata["Name"] == "lerobot_policy_condground"
@@ -44,11 +46,21 @@ def test_subpackages_map_to_the_top_level_pillars():
 
 def test_cli_help_lists_commands_and_flags():
     out = run_cli("condground", "--help").stdout
-    for command in ("record", "bench", "quickstart"):
-        assert command in out
-    record_help = run_cli("condground", "record", "--help").stdout
-    for flag in ("--env.task", "--env.condition", "--dataset.repo_id", "--dataset.root", "--dataset.num_episodes"):
-        assert flag in record_help
+    for command in ("record", "bench", "quickstart", "augment", "sweep", "probe", "diagnose", "attention", "report"):
+        assert f"  {command} " in out, command
+    flags = {
+        "record": ("--env.task", "--env.condition", "--dataset.repo_id", "--dataset.root", "--dataset.num_episodes"),
+        # The diagnosis flags other tools rely on.
+        "sweep": ("--policy.paths", "--env.task", "--sweep.conditions", "--eval.seeds", "--eval.n_episodes",
+                  "--output_dir", "--launcher", "--workers"),
+        "diagnose": ("--policy.path", "--env.task", "--output_dir"),
+        "probe": ("--policy.path", "--output_dir"),
+        "attention": ("--policy.path", "--env.task", "--env.condition", "--output_dir"),
+    }
+    for command, names in flags.items():
+        text = run_cli("condground", command, "--help").stdout
+        for flag in names:
+            assert flag in text, (command, flag)
     bad = run_cli("condground", "recrod", check=False)
     assert bad.returncode == 2 and "unknown command 'recrod'" in bad.stderr
 
@@ -68,6 +80,7 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
     out = run_cli(
         "condground", "quickstart", f"--output_dir={tmp_path}", "--episodes_per_task=1", "--expert_episodes=1",
         "--train.steps=2", "--train.batch_size=2", "--eval.episodes=1", "--eval.episode_length=10",
+        "--diagnosis.episodes=1", "--diagnosis.probe_episodes=1", "--diagnosis.pairs=1", "--diagnosis.frame_stride=8",
         "--progress=false", timeout=900,
     ).stdout
     lines = out.splitlines()
@@ -75,3 +88,20 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
         for condition in ("clean", "full_mixed"):
             assert any(line.split()[:2] == [policy, condition] for line in lines), out[-3000:]
     assert (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "policy_preprocessor.json").exists()
+
+    # It ends with the diagnosis suite and its report; the stock CLI rebuilds the report from the outputs.
+    diagnosis = tmp_path / "diagnosis"
+    rows = read_table(diagnosis / "sweep" / "results.parquet")
+    assert len(rows) == 2 * 4 and set(rows.policy_label) == {"act_modified/full", "expert"}
+    for name in ("diagnose/diagnostics.json", "probe/probe.json", "attention/attention.mp4", "report/report.html", "report/report.md"):
+        assert (diagnosis / name).exists(), name
+    assert f"Report: {diagnosis / 'report' / 'report.html'}" in out
+    dirs = [f"--input_dir={diagnosis / name}" for name in ("sweep", "diagnose", "probe", "attention")]
+    rebuilt = run_cli("condground", "report", *dirs, f"--output={tmp_path / 'again.html'}")
+    assert "report:" in rebuilt.stdout and "Table I" in (tmp_path / "again.html").read_text()
+    bad = run_cli("condground", "report", f"--input_dir={tmp_path / 'train'}", f"--output={tmp_path / 'x.html'}", check=False)
+    assert bad.returncode == 2 and bad.stderr.startswith("condground report:") and "Traceback" not in bad.stderr
+    checkpoint = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
+    bad = run_cli("condground", "attention", f"--policy.path={checkpoint}", "--env.condition=full_mix",
+                  f"--output_dir={tmp_path / 'att'}", check=False)
+    assert bad.returncode == 2 and "full_mix" in bad.stderr and "Traceback" not in bad.stderr
