@@ -19,7 +19,7 @@ class SweepBenchConfig:
     enable: bool = True
     # Worker counts to compare, e.g. "1,2,4" (default: 1 and all cores).
     workers: str = ""
-    episodes: int = 16
+    episodes: int = 48
     batch_size: int = 4
     episode_length: int = 100
     device: str = "cpu"

@@ -289,8 +289,10 @@ def execute(jobs: list[dict], launcher: str, workers: int, threads: int | None, 
     """Runs jobs on the chosen launcher; on_done(job, rows) is called in this process as each finishes."""
     if launcher == "ray":
         _execute_ray(jobs, workers, threads, ray_address, on_done)
-    elif workers == 1:
-        init_worker(threads)
+    elif workers == 1 and threads is None:
+        # In this process, with its threads as they are; a thread count needs a fresh process, since
+        # Mesa reads LP_NUM_THREADS only when it first loads.
+        init_worker(None)
         for job in jobs:
             on_done(job, run_unit(job))
     else:
