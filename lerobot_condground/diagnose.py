@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.provenance import command_line, versions
+from lerobot_condground.sweep import SweepEnvConfig
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +45,6 @@ LAYERS = ("vision_encoder", "memory", "decoder")
 PHASES = ("pick", "place")  # expert phase label 0 (acquire the object), 1 (transport and place)
 SIDES = ("left", "right")  # of the target receptacle in the top camera image: y < 0, y >= 0
 SIDE_AXIS = "y"
-DEFAULT_TASK = "PickPlaceRandomBin-v0"
 
 # Paper Table II (Task 2 decoder state): Standard ACT, augmentation-only ACT, ACT-Modified.
 # phase_retained and conditional_placement in %, as printed in the paper.
@@ -72,16 +72,9 @@ class DiagnosisPolicyConfig:
 
 
 @dataclass
-class DiagnosisEnvConfig:
-    task: str = DEFAULT_TASK
+class DiagnosisEnvConfig(SweepEnvConfig):
     # diagnose: the reference condition of the matched pairs (default clean); attention: the scene.
     condition: str = "clean"
-    counterbalanced: bool = False
-    # Default: the checkpoint's camera size.
-    observation_height: int | None = None
-    observation_width: int | None = None
-    episode_length: int = 300
-    fps: int = 20
 
 
 @dataclass
