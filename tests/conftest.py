@@ -52,9 +52,11 @@ def read_json(path: Path) -> dict:
     return json.loads(Path(path).read_text())
 
 
-def make_checkpoint(path: Path, variant: str = "full", height: int = 96, width: int = 128, seed: int = 0) -> Path:
-    """A small act_modified checkpoint with random weights, saved the way lerobot-train saves one
-    (config, weights, processors): what the diagnosis commands load. It has not learned anything."""
+def make_checkpoint(path: Path, variant: str = "full", height: int = 96, width: int = 128, seed: int = 0,
+                    policy_type: str = "act_modified") -> Path:
+    """A small act_modified (or, with policy_type="act", stock ACT) checkpoint with random weights, saved
+    the way lerobot-train saves one (config, weights, processors): what the diagnosis commands load.
+    It has not learned anything."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors
@@ -72,12 +74,19 @@ def make_checkpoint(path: Path, variant: str = "full", height: int = 96, width: 
         OBS_PROMPT_OBJECT: PolicyFeature(FeatureType.STATE, (64, 64, 3)),
         OBS_PROMPT_RECEPTACLE: PolicyFeature(FeatureType.STATE, (64, 64, 3)),
     }
-    cfg = ACTModifiedConfig(
-        variant=variant, input_features=features, output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-        dim_model=32, n_heads=4, dim_feedforward=64, n_encoder_layers=1, n_vae_encoder_layers=1, chunk_size=10,
-        n_action_steps=10, pretrained_backbone_weights=None, device="cpu",
+    small = dict(
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))}, dim_model=32, n_heads=4,
+        dim_feedforward=64, n_encoder_layers=1, n_vae_encoder_layers=1, chunk_size=10, n_action_steps=10,
+        pretrained_backbone_weights=None, device="cpu",
     )
-    policy = ACTModifiedPolicy(cfg)
+    if policy_type == "act":
+        from lerobot.policies.act.configuration_act import ACTConfig
+        from lerobot.policies.act.modeling_act import ACTPolicy
+
+        cameras_and_state = {k: features[k] for k in ("observation.images.top", "observation.state")}
+        policy = ACTPolicy(ACTConfig(input_features=cameras_and_state, **small))
+    else:
+        policy = ACTModifiedPolicy(ACTModifiedConfig(variant=variant, input_features=features, **small))
     stats = {
         "observation.images.top": {"mean": torch.full((3, 1, 1), 0.45), "std": torch.full((3, 1, 1), 0.25)},
         "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
@@ -89,6 +98,12 @@ def make_checkpoint(path: Path, variant: str = "full", height: int = 96, width: 
         part.save_pretrained(path)
     (path / "train_config.json").write_text(json.dumps({"seed": seed}))
     return path
+
+
+@pytest.fixture(scope="session")
+def act_checkpoint(tmp_path_factory) -> Path:
+    """A small stock LeRobot ACT checkpoint (random weights, 96x128 camera)."""
+    return make_checkpoint(tmp_path_factory.mktemp("act") / "act", policy_type="act")
 
 
 @pytest.fixture(scope="session")

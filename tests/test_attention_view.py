@@ -28,13 +28,6 @@ from lerobot_condground.rollout import policy_batch, run_episodes
 STEPS = 23  # chunks of 10 actions: 3 chunk predictions
 
 
-@pytest.fixture(scope="module")
-def act_checkpoint(tmp_path_factory) -> Path:
-    from test_diagnose import make_act_checkpoint
-
-    return make_act_checkpoint(tmp_path_factory.mktemp("act") / "act")
-
-
 def _run(checkpoint, out, **options) -> tuple[Path, dict]:
     cfg = AttentionConfig(
         policy=DiagnosisPolicyConfig(path=str(checkpoint)),

@@ -2,7 +2,6 @@
 the competitors, the output files on tiny act_modified and stock ACT checkpoints, bad input."""
 
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -28,40 +27,6 @@ from lerobot_condground.diagnose import (
 from lerobot_condground.rollout import EnvSpec
 
 TASK = "PickPlaceRandomBin-v0"
-
-
-def make_act_checkpoint(path: Path, height: int = 96, width: int = 128, seed: int = 0) -> Path:
-    """A small stock LeRobot ACT checkpoint (random weights) with its processors, as lerobot-train saves one."""
-    import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.policies.act.configuration_act import ACTConfig
-    from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
-
-    torch.manual_seed(seed)
-    cfg = ACTConfig(
-        input_features={"observation.images.top": PolicyFeature(FeatureType.VISUAL, (3, height, width)),
-                        "observation.state": PolicyFeature(FeatureType.STATE, (7,))},
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (7,))},
-        dim_model=32, n_heads=4, dim_feedforward=64, n_encoder_layers=1, n_vae_encoder_layers=1, chunk_size=10,
-        n_action_steps=10, pretrained_backbone_weights=None, device="cpu",
-    )
-    policy = ACTPolicy(cfg)
-    stats = {
-        "observation.images.top": {"mean": torch.full((3, 1, 1), 0.45), "std": torch.full((3, 1, 1), 0.25)},
-        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
-        "action": {"mean": torch.tensor([0.0, -1.2, 1.3, -1.6, -1.57, 0.0, 0.3]), "std": torch.full((7,), 0.3)},
-    }
-    preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=stats)
-    path.mkdir(parents=True, exist_ok=True)
-    for part in (policy, preprocessor, postprocessor):
-        part.save_pretrained(path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def act_checkpoint(tmp_path_factory) -> Path:
-    return make_act_checkpoint(tmp_path_factory.mktemp("act") / "act")
 
 
 # ------------------------------------------------------------------------------------------ metrics
