@@ -597,16 +597,10 @@ def _section_condition_differences(doc: _Doc, results: pd.DataFrame, labels) -> 
 
 def _section_variant_differences(doc: _Doc, results: pd.DataFrame, labels) -> None:
     doc.add(Heading("Paired differences: variant − baseline"))
-    shared = results.groupby("task")["policy_label"].nunique() if len(results) else pd.Series(dtype=int)
-    if not (shared >= 2).any():
-        doc.add(Para("Needs sweeps of at least two policy labels on the same task (conditions, eval seeds and "
-                     "training seed indices in common).", note=True))
-        return
     # The scripted expert is the oracle every table shows, not a variant to compare against.
-    results = results[results.policy_type != "expert"]
-    labels = [lb for lb in labels if lb in set(results["policy_label"])]
-    shared = results.groupby("task")["policy_label"].nunique() if len(results) else pd.Series(dtype=int)
-    if not (shared >= 2).any():
+    results = results[results.policy_type != "expert"] if len(results) else results
+    labels = [lb for lb in labels if len(results) and lb in set(results["policy_label"])]
+    if not len(results) or not (results.groupby("task")["policy_label"].nunique() >= 2).any():
         doc.add(Para("Needs sweeps of at least two policies (the expert aside) on the same task.", note=True))
         return
     baseline = pick_baseline(labels)

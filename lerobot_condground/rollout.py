@@ -44,8 +44,7 @@ class EnvSpec:
     def lerobot_config(self):
         from lerobot_condground.envs.configs import CondGroundEnvConfig
 
-        fields = {k: v for k, v in asdict(self).items()}
-        return CondGroundEnvConfig(**fields)
+        return CondGroundEnvConfig(**asdict(self))
 
 
 class EnvPool:
@@ -59,12 +58,6 @@ class EnvPool:
         while len(envs) < n:
             envs.append(spec.make())
         return envs[:n]
-
-    def close(self) -> None:
-        for envs in self._envs.values():
-            for env in envs:
-                env.close()
-        self._envs.clear()
 
 
 def policy_batch(loaded: LoadedPolicy, observations: list[dict], envs: list) -> dict:
@@ -132,7 +125,6 @@ def run_episodes(
 
     active = np.ones(len(envs), dtype=bool)
     steps = np.zeros(len(envs), dtype=int)
-    truncated = np.zeros(len(envs), dtype=bool)
     unstable = np.zeros(len(envs), dtype=bool)
     step = 0
     while active.any() and step < max_steps:
@@ -148,7 +140,7 @@ def run_episodes(
                 active[i] = False
                 unstable[i] = bool(info.get("physics_unstable"))
         step += 1
-    truncated |= active  # still running at the step limit
+    truncated = active  # still running at the step limit
     return [outcome(env, info, int(n), bool(t), bool(u)) for env, info, n, t, u in zip(envs, infos, steps, truncated, unstable)]
 
 

@@ -1,7 +1,6 @@
 """`condground augment`: an augmented copy of a recorded dataset, and its refusals of bad input."""
 
 import numpy as np
-import pytest
 import torch
 
 from lerobot_condground.cli import main

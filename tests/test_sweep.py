@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import BIN, make_checkpoint, run_cli
+from conftest import BIN, run_cli
 
 from lerobot_condground.results import IDENTITY_COLUMNS, OUTCOME_COLUMNS, read_metadata, read_table, write_table
 from lerobot_condground.sweep import PARTS, SweepConfig, SweepEnvConfig, SweepEvalConfig, SweepGridConfig, SweepPolicyConfig, run_sweep
 
-OUTCOMES = [c for c in OUTCOME_COLUMNS]
+OUTCOMES = list(OUTCOME_COLUMNS)
 
 
 def sweep_config(paths, out: Path, conditions="clean,full_mixed", seeds=1, episodes=2, batch=2, length=12, **kw) -> SweepConfig:
