@@ -1,0 +1,64 @@
+"""A LeRobot camera that renders the connected UR3e twin's scene (MuJoCo, headless with EGL)."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from lerobot.cameras import Camera
+
+from .config_ur3e_twin import UR3eTwinCameraConfig
+
+
+class UR3eTwinCamera(Camera):
+    def __init__(self, config: UR3eTwinCameraConfig):
+        super().__init__(config)
+        self.config = config
+        self._twin = None
+        self._renderer = None
+        self._model = None
+
+    def __str__(self) -> str:
+        return f"UR3eTwinCamera({self.config.camera})"
+
+    @property
+    def is_connected(self) -> bool:
+        return self._twin is not None
+
+    @staticmethod
+    def find_cameras() -> list[dict]:
+        from lerobot_condground.robots.sim_arm import _CONNECTED
+
+        return [{"name": cam, "type": "ur3e_twin"} for _ in _CONNECTED[:1] for cam in ("top", "wrist")]
+
+    def connect(self, warmup: bool = True) -> None:
+        from lerobot_condground.robots.sim_arm import active_twin
+
+        self._twin = active_twin()
+        if warmup:
+            self.read()
+
+    def read(self, color_mode=None) -> np.ndarray:
+        if self._twin is None:
+            raise RuntimeError(f"{self} is not connected")
+        twin = self._twin
+        with twin.lock:
+            if twin.env is None:
+                raise RuntimeError(f"{self}: the twin it renders was disconnected")
+            if self._model is not twin.env.model:  # a new layout may bring a rebuilt model
+                if self._renderer is not None:
+                    self._renderer.close()
+                self._model = twin.env.model
+                self._renderer = mujoco.Renderer(self._model, self.config.height, self.config.width)
+            self._renderer.update_scene(twin.env.data, camera=self.config.camera)
+            return self._renderer.render().copy()
+
+    def async_read(self, timeout_ms: float = 200) -> np.ndarray:
+        return self.read()
+
+    def read_latest(self, max_age_ms: int = 500) -> np.ndarray:
+        return self.read()
+
+    def disconnect(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+        self._renderer = self._model = self._twin = None

@@ -1,0 +1,209 @@
+"""The MuJoCo twin of the UR3e behind the same arm interface as the hardware (`--robot.backend=sim`).
+
+The twin is the condground scene (`envs.pickplace_env`) with its UR3e-like arm, driven by the same
+`ServoLoop` as the real arm: position servos take the set points at 500 Hz (the physics rate), the
+same safety limits and stall watchdog apply. Its cameras are LeRobot cameras of type `ur3e_twin`.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+
+import mujoco
+import numpy as np
+
+from lerobot_condground.envs import robot as sim_robot
+
+from .servo_loop import ServoLoop
+
+logger = logging.getLogger(__name__)
+
+_CONNECTED: list[SimArm] = []
+TRACKER_EVERY = 5
+
+# LeRobot gives robots no hook at the start of an episode; on hardware a person resets the scene in the
+# reset period. The twin resets its scene when one of LeRobot's recording loops starts a new episode:
+# (module, function) -> (local holding the loop's start time, whether that loop records).
+_EPISODE_LOOPS = {
+    ("lerobot.scripts.lerobot_record", "record_loop"): ("start_episode_t", lambda loc: loc.get("dataset") is not None),
+    ("lerobot.rollout.strategies.episodic", "_policy_loop"): ("start_t", lambda loc: True),
+}
+
+
+def active_twin() -> SimArm:
+    """The connected twin of this process (cameras and the expert teleoperator attach to it)."""
+    if len(_CONNECTED) != 1:
+        raise RuntimeError(
+            f"{len(_CONNECTED)} ur3e twins are connected in this process; ur3e_twin cameras and the ur3e_expert "
+            "teleoperator need exactly one --robot.type=ur3e --robot.backend=sim robot, connected first"
+        )
+    return _CONNECTED[0]
+
+
+def recording_episode() -> float | None:
+    """The start time of the LeRobot episode loop that is recording now (one value per episode), or None."""
+    frame = sys._getframe(1)
+    while frame is not None:
+        entry = _EPISODE_LOOPS.get((frame.f_globals.get("__name__"), frame.f_code.co_name))
+        if entry is not None:
+            local = frame.f_locals
+            return local.get(entry[0]) if entry[1](local) else None
+        frame = frame.f_back
+    return None
+
+
+class TwinBackend:
+    """ArmBackend over the twin's MuJoCo state."""
+
+    def __init__(self, env):
+        self.env = env
+        self.freedrive_on = False
+        self.servo_stops = 0
+
+    def read(self):
+        env = self.env
+        dof = [env.model.joint(n).dofadr[0] for n in sim_robot.JOINT_NAMES]
+        return env.joint_positions(), env.data.qvel[dof].copy(), env.gripper_closure(), 1
+
+    def servo(self, q):
+        self.env.data.ctrl[:6] = q
+
+    def servo_stop(self):
+        # Position servos held at the measured joints: the arm decelerates to standstill where it is.
+        self.env.data.ctrl[:6] = self.env.joint_positions()
+        self.servo_stops += 1
+
+    def set_gripper(self, closure):
+        self.env.data.ctrl[6] = float(np.clip(closure, 0.0, 1.0)) * sim_robot.FINGER_TRAVEL
+
+    def freedrive(self, on):
+        if on:
+            raise ValueError("Freedrive (teach mode) needs the real arm (--robot.backend=rtde); the twin has no hand to move it")
+
+
+class SimArm:
+    def __init__(self, config):
+        self.config = config
+        self.env = None
+        self.loop: ServoLoop | None = None
+        self.scene = -1  # scene counter: 0 for the first layout after connect
+        self.lock = threading.RLock()
+        self._thread = None
+        self._running = False
+        self._fault: BaseException | None = None
+        self._episode = None
+        self._dirty = False  # the arm moved since the scene was laid out
+
+    @property
+    def is_connected(self) -> bool:
+        return self.env is not None
+
+    def connect(self) -> None:
+        from lerobot_condground.envs.pickplace_env import PickPlaceEnv
+
+        cfg = self.config
+        self.env = PickPlaceEnv(
+            task=cfg.sim.task, condition=cfg.sim.condition, counterbalanced=cfg.sim.counterbalanced,
+            obs_type="agent_pos", prompts=True, fps=int(cfg.control_hz),
+        )
+        self.backend = TwinBackend(self.env)
+        self.clock = 0.0
+        self._ticks = 0
+        self.reset_scene()
+        _CONNECTED.append(self)
+        if cfg.sim.realtime:
+            self._running = True
+            self._thread = threading.Thread(target=self._run_realtime, name="ur3e-twin-physics", daemon=True)
+            self._thread.start()
+
+    def reset_scene(self) -> None:
+        """A new layout (seed `sim.seed + scene`), the arm at its home pose, the stream stopped."""
+        with self.lock:
+            self.scene += 1
+            self.env.reset(seed=self.config.sim.seed + self.scene)
+            self.loop = ServoLoop(
+                self.backend, control_period=1 / self.config.control_hz, servo_period=sim_robot_dt(),
+                max_joint_velocity=np.array(self.config.max_joint_velocity), joint_min=np.array(self.config.joint_min),
+                joint_max=np.array(self.config.joint_max), stall_periods=self.config.stall_periods,
+            )
+            self.loop.tick(self.clock)
+            self._dirty = False
+
+    def maybe_new_episode(self) -> None:
+        episode = recording_episode()
+        if episode is not None and episode != self._episode:
+            self._episode = episode
+            if self._dirty:
+                self.reset_scene()
+
+    def _step(self) -> None:
+        self.loop.tick(self.clock)
+        mujoco.mj_step(self.env.model, self.env.data)
+        self.clock += sim_robot_dt()
+        self._ticks += 1
+        if self._ticks % TRACKER_EVERY == 0:  # stage flags (grasp, place) at 100 Hz are plenty
+            self.env.tracker.update(self.env.data)
+
+    def _run_realtime(self) -> None:
+        start = time.perf_counter() - self.clock
+        try:
+            while self._running:
+                with self.lock:
+                    behind = (time.perf_counter() - start) - self.clock
+                    # Catch up in bounded bursts so rendering and commands still get the lock.
+                    for _ in range(min(int(behind / sim_robot_dt()), 50)):
+                        self._step()
+                time.sleep(0.001)
+        except BaseException as exc:  # surfaced by the next call from the robot
+            self._fault = exc
+
+    def _check(self) -> None:
+        if self._fault is not None:
+            raise self._fault
+
+    def state(self):
+        self._check()
+        with self.lock:
+            # The last tick's reading (at most one physics step old): ticking here too would advance the
+            # set point faster than the velocity limit allows.
+            return self.loop.state
+
+    def command(self, q, gripper: float) -> None:
+        self._check()
+        with self.lock:
+            self.loop.command(q, gripper, self.clock)
+            self._dirty = True
+            if not self.config.sim.realtime:
+                for _ in range(round(1 / (self.config.control_hz * sim_robot_dt()))):
+                    self._step()
+
+    def freedrive(self, on: bool) -> None:
+        with self.lock:
+            self.loop.set_freedrive(on)
+
+    def stop(self) -> None:
+        with self.lock:
+            if self.loop is not None:
+                self.loop.stop()
+
+    def disconnect(self) -> None:
+        try:
+            self.stop()
+        finally:
+            self._running = False
+            if self._thread is not None:
+                self._thread.join(timeout=2)
+            if self in _CONNECTED:
+                _CONNECTED.remove(self)
+            if self.env is not None:
+                self.env.close()
+            self.env = None
+
+
+def sim_robot_dt() -> float:
+    from lerobot_condground.envs.scene import PHYSICS_DT
+
+    return PHYSICS_DT
