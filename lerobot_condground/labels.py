@@ -25,6 +25,12 @@ OBS_PHASE = "observation.phase"
 OBS_PROMPT_OBJECT = "observation.prompt.object"
 OBS_PROMPT_RECEPTACLE = "observation.prompt.receptacle"
 LABEL_KEYS = (OBS_SEGMENTATION, OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
+# A robot's prompt virtual cameras (`prompt_object` / `prompt_receptacle`, see the ur3e robot) reach a
+# policy as these camera keys: they are the prompt crops, never cameras of the policy.
+PROMPT_CAMERA_KEYS = {
+    "observation.images.prompt_object": OBS_PROMPT_OBJECT,
+    "observation.images.prompt_receptacle": OBS_PROMPT_RECEPTACLE,
+}
 PNG_LABEL_KEYS = (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
 PNG_FEATURE = {"dtype": "string", "shape": (1,), "names": None}
 
@@ -63,6 +69,9 @@ def decode_labels(data: dict, keys=PNG_LABEL_KEYS) -> dict:
     import torch
 
     out = dict(data)
+    for camera_key, key in PROMPT_CAMERA_KEYS.items():
+        if camera_key in out and key not in out:
+            out[key] = out.pop(camera_key)
     for key in keys:
         value = out.get(key)
         if isinstance(value, str):

@@ -27,6 +27,7 @@ from lerobot_condground.labels import (
     OBS_PROMPT_OBJECT,
     OBS_PROMPT_RECEPTACLE,
     OBS_SEGMENTATION,
+    PROMPT_CAMERA_KEYS,
 )
 
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
@@ -161,6 +162,7 @@ class ACTModifiedConfig(ACTConfig):
         self.label_keys = [key for key in LABEL_KEYS if key in self.input_features]
         for key in list(self.input_features):
             feature = self.input_features[key]
-            is_camera = feature.type is FeatureType.VISUAL and key.startswith(f"{OBS_IMAGES}.")
+            is_camera = (feature.type is FeatureType.VISUAL and key.startswith(f"{OBS_IMAGES}.")
+                         and key not in PROMPT_CAMERA_KEYS)
             if key not in (OBS_STATE, OBS_ENV_STATE) and not is_camera:
                 del self.input_features[key]
