@@ -9,6 +9,8 @@
     condground diagnose    representation diagnostics on matched clean/distractor frames (Table II, Figure 2)
     condground attention   per-step cross-attention overlay video of one episode
     condground report      one HTML (and Markdown) report from sweep and diagnosis outputs
+    condground prompts     SAM 2 visual prompts + label maps for a hardware LeRobotDataset -> a new LeRobotDataset
+    condground prompts-bench  per-frame tracking latency of the prompt segmenters
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ COMMANDS = {
     "diagnose": "Representation diagnostics of an ACT-family checkpoint on matched clean/distractor frames.",
     "attention": "Per-step cross-attention of one head overlaid on the camera, as a video with stills.",
     "report": "Turn sweep, diagnose, probe and attention outputs into one HTML + Markdown report.",
+    "prompts": "Add prompt crops, segmentation and phase (SAM 2 or color tracking) to a hardware dataset, as a copy.",
+    "prompts-bench": "Per-frame tracking latency of the prompt segmenters (color, SAM 2) on this machine.",
 }
 
 
@@ -67,6 +71,19 @@ def main(argv: list[str] | None = None) -> int:
             print(format_summary(augment_dataset(cfg)))
         except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad input: one line, no traceback
             print(f"condground augment: {err}", file=sys.stderr)
+            return 2
+    elif command in ("prompts", "prompts-bench"):
+        from lerobot_condground import prompts
+
+        try:
+            if command == "prompts":
+                cfg = draccus.parse(prompts.PromptsConfig, args=args, prog="condground prompts")
+                print(prompts.format_summary(prompts.label_dataset(cfg)))
+            else:
+                args = ["--json=true" if a == "--json" else a for a in args]
+                prompts.run_bench(draccus.parse(prompts.PromptsBenchConfig, args=args, prog="condground prompts-bench"))
+        except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad input: one line, no traceback
+            print(f"condground {command}: {err}", file=sys.stderr)
             return 2
     elif command == "quickstart":
         from lerobot_condground.quickstart import QuickstartConfig, run_quickstart

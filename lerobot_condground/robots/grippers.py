@@ -53,7 +53,7 @@ class RobotiqSocketGripper:
             raise GripperError(f"Robotiq answered {reply!r} to 'GET {register}'")
         return int(value)
 
-    def connect(self, activation_timeout: float = 5.0) -> None:
+    def connect(self, activate: bool = True, activation_timeout: float = 5.0) -> None:
         try:
             self.sock = socket.create_connection((self.host, self.port), timeout=self.timeout)
         except OSError as exc:
@@ -61,6 +61,8 @@ class RobotiqSocketGripper:
                 f"No Robotiq URCap socket at {self.host}:{self.port} ({exc}); is the Robotiq URCap installed and "
                 "the gripper plugged in? Use --robot.gripper=digital_output or none for other grippers."
             ) from exc
+        if not activate:  # dry run: read the fingers, never move them (activation opens and closes them)
+            return
         if self._get("STA") != 3:  # 3 = activation complete
             self._set(ACT=0, ATR=0)
             self._set(ACT=1)

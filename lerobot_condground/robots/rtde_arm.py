@@ -83,7 +83,7 @@ class URBackend:
             from .grippers import RobotiqSocketGripper
 
             self.gripper = RobotiqSocketGripper(host, cfg["gripper_port"], cfg["gripper_speed"], cfg["gripper_force"])
-            self.gripper.connect()
+            self.gripper.connect(activate=not cfg["dry_run"])
             threading.Thread(target=self._gripper_io, name="robotiq", daemon=True).start()
         elif cfg["gripper"] == "digital_output":
             from .grippers import DigitalOutputGripper

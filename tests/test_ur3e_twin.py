@@ -1,0 +1,213 @@
+"""The `ur3e` robot on its MuJoCo twin: stock lerobot-record / lerobot-rollout end to end, and the safety
+layer (limits, stall watchdog, disconnect on exceptions, bad input) through the same robot class that
+drives the hardware."""
+
+import time
+
+import numpy as np
+import pytest
+from conftest import make_checkpoint, run_cli
+
+from lerobot_condground.envs.robot import HOME_QPOS, MOTOR_NAMES
+from lerobot_condground.robots import kinematics, sim_arm
+from lerobot_condground.robots.config_ur3e import UR3eConfig, UR3eSimConfig
+from lerobot_condground.robots.ur3e import UR3e
+from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eExpertConfig
+from lerobot_condground.teleoperators.ur3e_teleops import UR3eExpert
+
+TWIN_CAMERA = "--robot.cameras={top: {type: ur3e_twin, width: 128, height: 96, fps: 20}}"
+RECORD_FLAGS = ["--dataset.push_to_hub=false", "--play_sounds=false", "--dataset.fps=20"]
+
+
+def twin(realtime=False, condition="clean", **kwargs) -> UR3e:
+    from lerobot_condground.cameras.config_ur3e_twin import UR3eTwinCameraConfig
+
+    cameras = {"top": UR3eTwinCameraConfig(width=128, height=96, fps=20)}
+    return UR3e(UR3eConfig(backend="sim", cameras=cameras, sim=UR3eSimConfig(realtime=realtime, condition=condition),
+                           **kwargs))
+
+
+def action(q, gripper=0.0) -> dict:
+    return dict(zip(MOTOR_NAMES, [*map(float, q), float(gripper)], strict=True))
+
+
+def hardware_features(height=96, width=128) -> dict:
+    """The dataset features lerobot-record derives for the hardware ur3e with one camera of that size."""
+    from lerobot.cameras.opencv import OpenCVCameraConfig
+    from lerobot.utils.feature_utils import hw_to_dataset_features
+
+    robot = UR3e(UR3eConfig(host="192.0.2.1", cameras={"top": OpenCVCameraConfig(index_or_path=0, width=width, height=height, fps=20)}))
+    return {**hw_to_dataset_features(robot.action_features, "action"),
+            **hw_to_dataset_features(robot.observation_features, "observation")}
+
+
+def episodes(root, repo_id):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset(repo_id, root=root)
+    frames = ds.hf_dataset.with_format("numpy")[:]
+    return ds, [np.flatnonzero(frames["episode_index"] == e) for e in range(ds.meta.total_episodes)], frames
+
+
+def test_lerobot_record_with_expert_teleop_on_the_twin(tmp_path):
+    """Stock lerobot-record, headless, real-time twin: one expert demonstration per episode, each from a
+    fresh scene, and the same dataset features as a hardware recording."""
+    root = tmp_path / "demo"
+    run_cli(
+        "lerobot-record", "--robot.type=ur3e", "--robot.backend=sim", TWIN_CAMERA, "--teleop.type=ur3e_expert",
+        "--dataset.repo_id=local/ur3e_demo", f"--dataset.root={root}", "--dataset.num_episodes=2",
+        "--dataset.episode_time_s=7", "--dataset.reset_time_s=0.5", "--dataset.single_task=put the cube in the bowl",
+        *RECORD_FLAGS,
+    )
+    ds, eps, frames = episodes(root, "local/ur3e_demo")
+    assert ds.meta.robot_type == "ur3e" and len(eps) == 2
+    for key, feature in hardware_features().items():
+        assert ds.features[key]["shape"] == tuple(feature["shape"]) and ds.features[key].get("names") == feature.get("names"), key
+    for idx in eps:
+        state, act = frames["observation.state"][idx], frames["action"][idx]
+        assert len(idx) >= 100  # 7 s at 20 fps, minus what a busy machine drops
+        np.testing.assert_allclose(state[0, :6], HOME_QPOS, atol=0.02)  # a new scene, the arm at home
+        assert act[:, 6].max() > 0.9 and state[:, 6].max() > 0.2  # the expert closed the gripper on the object
+        # The arm follows the commands: by the end it rests where it was last sent.
+        np.testing.assert_allclose(state[-1, :6], act[-2, :6], atol=0.05)
+
+
+def test_expert_demonstrations_succeed_on_the_twin():
+    robot, teleop = twin(condition="full_mixed"), UR3eExpert(UR3eExpertConfig())
+    teleop.connect()
+    with robot:
+        for scene in range(2):
+            if scene:
+                robot.arm.reset_scene()
+            for _ in range(300):
+                robot.get_observation()
+                robot.send_action(teleop.get_action())
+                if teleop.expert.done:
+                    break
+            assert robot.arm.env.tracker.place, f"scene {scene}: the expert did not place the object"
+    teleop.disconnect()
+
+
+def test_lerobot_rollout_with_act_modified_checkpoint_on_the_twin(tmp_path):
+    """Stock lerobot-rollout records policy episodes on the twin; the full variant gets its prompt crops
+    from the robot's prompt cameras, and refuses to run without them."""
+    ckpt = make_checkpoint(tmp_path / "ckpt", "full", 96, 128)
+    common = ["lerobot-rollout", f"--policy.path={ckpt}", "--robot.type=ur3e", "--robot.backend=sim",
+              "--robot.sim.realtime=false", TWIN_CAMERA, "--fps=20"]
+    root = tmp_path / "rollout"
+    run_cli(
+        *common, "--robot.prompts.segmenter=privileged", "--strategy.type=episodic", "--dataset.episode_time_s=1.5",
+        "--dataset.reset_time_s=0.2", "--dataset.repo_id=local/rollout_ur3e", f"--dataset.root={root}",
+        "--dataset.single_task=put the cube in the bowl", "--dataset.num_episodes=2", "--dataset.push_to_hub=false",
+        "--play_sounds=false",
+    )
+    ds, eps, frames = episodes(root, "local/rollout_ur3e")
+    assert len(eps) == 2 and {"observation.images.prompt_object", "observation.images.prompt_receptacle"} <= set(ds.features)
+    for idx in eps:
+        np.testing.assert_allclose(frames["observation.state"][idx[0], :6], HOME_QPOS, atol=0.02)
+    # The untrained policy's actions are its own (not the home pose), and the arm moved toward them.
+    moved = np.abs(frames["observation.state"][:, :6] - HOME_QPOS).max()
+    assert moved > 0.01
+
+    proc = run_cli(*common, "--strategy.type=base", "--task=put the cube in the bowl", "--duration=1", check=False)
+    assert proc.returncode != 0 and "needs ['observation.prompt.object', 'observation.prompt.receptacle']" in proc.stderr
+
+
+# ---------------------------------------------------------------------- safety
+def test_bad_actions_are_refused_before_anything_is_sent():
+    with twin() as robot:
+        for bad, words in (
+            ({**action(HOME_QPOS), "shoulder_pan.pos": float("nan")}, "7 finite numbers"),
+            ({k: v for k, v in action(HOME_QPOS).items() if k != "gripper.pos"}, "missing ['gripper.pos']"),
+            ({**action(HOME_QPOS), "elbow.vel": 0.0}, "unknown ['elbow.vel']"),
+        ):
+            with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
+                robot.send_action(bad)
+        assert not robot.arm.loop.streaming and robot.arm.backend.servo_stops == 0
+
+
+def test_joint_limits_step_and_workspace_are_clipped():
+    with twin() as robot:
+        q = HOME_QPOS.copy()
+        sent = robot.send_action(action(q + [1.0, 0, -5.0, 0, 0, 0]))  # a jump and a joint past its limit
+        assert sent["shoulder_pan.pos"] == pytest.approx(q[0] + 0.15)  # max_joint_step
+        assert sent["elbow.pos"] == pytest.approx(q[2] - 0.15)
+        # Drive the tool down through the table: every sent target keeps the tool in the box (z >= 5 mm).
+        pos, rot = kinematics.forward(q)
+        zs = []
+        for _ in range(40):
+            pos = pos + [0, 0, -0.02]
+            target = kinematics.solve_ik(q, pos, rot)
+            sent = robot.send_action(action(target))
+            q = np.array([sent[k] for k in MOTOR_NAMES[:6]])
+            zs.append(kinematics.forward(q)[0][2])
+            robot.get_observation()
+        assert min(zs) >= 0.005 - 1e-4 and min(zs) < 0.01  # it got down to the floor of the box, no further
+        measured = robot.arm.state().q
+        assert kinematics.forward(measured)[0][2] > 0.0
+
+
+def test_stalled_command_stream_stops_the_arm_within_two_periods():
+    robot = twin(realtime=True)
+    with robot:
+        arm = robot.arm
+        q = HOME_QPOS.copy()
+        for i in range(8):  # a steady motion of the base joint at 1 rad/s, then silence
+            q[0] += 0.05
+            robot.send_action(action(q))
+            last = time.perf_counter()
+            time.sleep(0.05)
+        sent_at = arm.clock - (time.perf_counter() - last)
+        while arm.state().stalls == 0:
+            assert time.perf_counter() - last < 1.0, "the watchdog never stopped the stream"
+            time.sleep(0.002)
+        stopped = arm.state()
+        # The loop's own clock: stopped within two control periods (+ one servo tick) of the last command.
+        assert stopped.time - sent_at <= 2 * 0.05 + 0.004
+        assert not stopped.streaming and arm.backend.servo_stops == 1
+        time.sleep(0.5)
+        assert np.abs(arm.state().qd).max() < 0.05  # standing still
+        robot.send_action(action(q))  # the next command restarts the stream
+        time.sleep(0.02)
+        assert arm.state().streaming
+
+
+def test_disconnect_stops_the_arm_on_an_exception():
+    robot = twin(realtime=True)
+    with pytest.raises(KeyboardInterrupt):
+        with robot:
+            arm = robot.arm
+            q = HOME_QPOS.copy()
+            for _ in range(4):
+                q[0] += 0.05
+                robot.send_action(action(q))
+                time.sleep(0.05)
+            raise KeyboardInterrupt  # Ctrl-C in the middle of a motion
+    assert not robot.is_connected and arm.backend.servo_stops == 1 and not arm.loop.streaming
+    assert sim_arm._CONNECTED == [] and arm.env is None
+
+
+def test_missing_camera_is_one_clear_error_and_the_arm_is_released():
+    from lerobot.cameras.opencv import OpenCVCameraConfig
+
+    robot = UR3e(UR3eConfig(backend="sim", cameras={"top": OpenCVCameraConfig(index_or_path="/dev/video97", width=128, height=96, fps=20)}))
+    with pytest.raises(ConnectionError, match="Camera 'top' \\(opencv\\) could not be opened"):
+        robot.connect()
+    assert not robot.is_connected and sim_arm._CONNECTED == []
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"backend": "ros"}, "backend='ros'; allowed: rtde, sim"),
+    ({"backend": "rtde"}, "host is required"),
+    ({"backend": "sim", "gripper": "suction"}, "gripper='suction'"),
+    ({"backend": "sim", "joint_offsets": [0.0] * 5}, "joint_offsets"),
+    ({"backend": "sim", "max_joint_step": 2.0}, "max_joint_step=2.0"),
+    ({"host": "192.0.2.1", "prompts": {"segmenter": "privileged"}}, "needs backend=sim"),
+])
+def test_config_errors_name_the_bad_value(kwargs, words):
+    from lerobot_condground.robots.config_ur3e import UR3ePromptsConfig
+
+    if "prompts" in kwargs:
+        kwargs["prompts"] = UR3ePromptsConfig(**kwargs["prompts"])
+    with pytest.raises(ValueError, match=words.replace("(", r"\(").replace("[", r"\[")):
+        UR3eConfig(**kwargs)
