@@ -93,17 +93,16 @@ class PromptTracker:
         return PromptResult(self._crops[0].copy(), self._crops[1].copy(), labels_from_masks(masks, shape), masks)
 
 
-def annotate_interactively(frame, window: str = "condground prompts") -> tuple[str, str, list[str]]:
-    """Click the object, then the receptacle, then any competitors; Backspace undoes, Enter accepts,
-    Esc cancels. Needs a display. Returns the prompts as 'x,y' strings for `PromptTracker.start`."""
+def annotate_interactively(frame, window: str = "condground prompts") -> tuple[Prompt, Prompt]:
+    """Click the object, then the receptacle, then Enter (Backspace undoes, Esc cancels), in an OpenCV
+    window: needs a display. Returns (object_prompt, receptacle_prompt) for `PromptTracker.start`."""
     import cv2
 
     image = cv2.cvtColor(np.asarray(frame), cv2.COLOR_RGB2BGR)
     clicks: list[tuple[int, int]] = []
-    colors = [(0, 0, 255), (255, 0, 0)]  # object red, receptacle blue; competitors yellow
 
     def on_mouse(event, x, y, *_):
-        if event == cv2.EVENT_LBUTTONDOWN:
+        if event == cv2.EVENT_LBUTTONDOWN and len(clicks) < 2:
             clicks.append((x, y))
 
     cv2.namedWindow(window, cv2.WINDOW_NORMAL)
@@ -111,14 +110,13 @@ def annotate_interactively(frame, window: str = "condground prompts") -> tuple[s
     try:
         while True:
             shown = image.copy()
-            for i, (x, y) in enumerate(clicks):
-                cv2.circle(shown, (x, y), 4, colors[i] if i < 2 else (0, 255, 255), -1)
-            step = ("click the OBJECT", "click the RECEPTACLE")[len(clicks)] if len(clicks) < 2 else \
-                "competitors (optional), Enter to accept"
+            for (x, y), color in zip(clicks, [(0, 0, 255), (255, 0, 0)]):  # object red, receptacle blue
+                cv2.circle(shown, (x, y), 4, color, -1)
+            step = ("click the OBJECT", "click the RECEPTACLE", "Enter: accept")[len(clicks)]
             cv2.putText(shown, step, (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1)
             cv2.imshow(window, shown)
             key = cv2.waitKey(30) & 0xFF
-            if key in (13, 10) and len(clicks) >= 2:
+            if key in (13, 10) and len(clicks) == 2:
                 break
             if key == 27:
                 raise ValueError("Annotation cancelled (Esc)")
@@ -126,5 +124,4 @@ def annotate_interactively(frame, window: str = "condground prompts") -> tuple[s
                 clicks.pop()
     finally:
         cv2.destroyWindow(window)
-    as_text = [f"{x},{y}" for x, y in clicks]
-    return as_text[0], as_text[1], as_text[2:]
+    return Prompt(tuple(map(float, clicks[0]))), Prompt(tuple(map(float, clicks[1])))

@@ -177,8 +177,8 @@ def _episode_prompts(cfg: PromptsConfig, episodes: list[int], height: int, width
             raise ValueError(f"--annotations={path} is not a JSON object of episode index -> prompts ({err})") from None
         stray = sorted(set(per_episode) - set(episodes))
         if stray:
-            raise ValueError(f"--annotations names episodes {stray} that are not {'in --episodes' if chosen else 'in the dataset'}; "
-                             f"allowed: {_ranges(episodes)}")
+            where = "in --episodes" if chosen else "in the dataset"
+            raise ValueError(f"--annotations names episodes {stray} that are not {where}; allowed: {_ranges(episodes)}")
     elif default is None:
         raise ValueError("No prompts: give --object=x,y --receptacle=x,y, or --annotations=file.json")
     missing = [ep for ep in episodes if ep not in per_episode and default is None]
@@ -223,7 +223,8 @@ def _parse_episodes(text: str | None, total: int) -> list[int]:
     try:
         chosen = sorted({int(p) for p in str(text).strip("[]").split(",") if p.strip()})
     except ValueError:
-        raise ValueError(f"--episodes={text!r} is not a list of episode indices; allowed: e.g. --episodes=0,2,5") from None
+        raise ValueError(f"--episodes={text!r} is not a list of episode indices; allowed: e.g. "
+                         f"--episodes=0,2,5") from None
     outside = [ep for ep in chosen if not 0 <= ep < total]
     if outside or not chosen:
         raise ValueError(f"--episodes={text!r}: episodes {outside or '(none)'} are not in the dataset; allowed: "

@@ -93,6 +93,14 @@ class Prompt:
         return ",".join(f"{c:g}" for c in self.coords)
 
 
+def parse_prompt(value, image_size: tuple[int, int] | None = None) -> Prompt:
+    """`Prompt.parse`, checked to lie inside an image of image_size = (height, width) when given."""
+    prompt = Prompt.parse(value)
+    if image_size is not None:
+        prompt.check_inside(*image_size)
+    return prompt
+
+
 def check_frame(frame) -> np.ndarray:
     frame = np.asarray(frame)
     if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:

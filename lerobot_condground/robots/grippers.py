@@ -27,17 +27,17 @@ class RobotiqSocketGripper:
         self.host, self.port, self.speed, self.force, self.timeout = host, port, speed, force, timeout
         self.sock: socket.socket | None = None
         self._io = threading.Lock()
-        self._buffer = b""
 
     def _request(self, line: str) -> str:
+        # The URCap answers a SET with a bare "ack" (no newline) and a GET with "NAME value\n".
         with self._io:
             self.sock.sendall(line.encode() + b"\n")
-            while b"\n" not in self._buffer:
+            reply = b""
+            while not (reply.endswith(b"\n") or reply == b"ack"):
                 chunk = self.sock.recv(1024)
                 if not chunk:
                     raise GripperError(f"Robotiq URCap socket {self.host}:{self.port} closed the connection")
-                self._buffer += chunk
-            reply, self._buffer = self._buffer.split(b"\n", 1)
+                reply += chunk
             return reply.decode().strip()
 
     def _set(self, **registers: int) -> None:

@@ -84,6 +84,7 @@ class URBackend:
 
             self.gripper = RobotiqSocketGripper(host, cfg["gripper_port"], cfg["gripper_speed"], cfg["gripper_force"])
             self.gripper.connect(activate=not cfg["dry_run"])
+            self._gripper_closure = self.gripper.closure()  # the first observation is already right
             threading.Thread(target=self._gripper_io, name="robotiq", daemon=True).start()
         elif cfg["gripper"] == "digital_output":
             from .grippers import DigitalOutputGripper
@@ -222,7 +223,8 @@ class RTDEArm:
 
     @property
     def is_connected(self) -> bool:
-        return self.process is not None and self.process.is_alive() and self._fault is None
+        # Until disconnect(): a faulted arm stays "connected" so every call reports the fault.
+        return self.process is not None
 
     def _worker_config(self) -> dict:
         cfg = asdict(self.config)
