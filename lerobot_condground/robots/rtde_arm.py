@@ -241,7 +241,7 @@ class RTDEArm:
         self.conn, child = ctx.Pipe()
         self.shared = ctx.Array("d", _STATE_SIZE)
         self.process = ctx.Process(target=_worker, args=(self._worker_config(), child, self.shared),
-                                   name=f"ur3e-{cfg.host}", daemon=True)
+                                   name=f"ur3e-arm-worker-{cfg.host}", daemon=True)
         self.process.start()
         child.close()
         deadline = time.monotonic() + cfg.connect_timeout_s
