@@ -71,6 +71,13 @@ def test_lerobot_record_with_expert_teleop_on_the_twin(tmp_path):
         # The arm follows the commands: by the end it rests where it was last sent.
         np.testing.assert_allclose(state[-1, :6], act[-2, :6], atol=0.05)
 
+    # The other stock scripts drive the same robot: replay an episode, teleoperate with the expert.
+    twin_flags = ["--robot.type=ur3e", "--robot.backend=sim", "--robot.sim.realtime=false", TWIN_CAMERA]
+    run_cli("lerobot-replay", *twin_flags, "--dataset.repo_id=local/ur3e_demo", f"--dataset.root={root}",
+            "--dataset.episode=1", "--play_sounds=false")
+    proc = run_cli("lerobot-teleoperate", *twin_flags, "--teleop.type=ur3e_expert", "--teleop_time_s=1", "--fps=20")
+    assert "Teleop loop time" in proc.stdout + proc.stderr
+
 
 def test_expert_demonstrations_succeed_on_the_twin():
     robot, teleop = twin(condition="full_mixed"), UR3eExpert(UR3eExpertConfig())
@@ -211,3 +218,57 @@ def test_config_errors_name_the_bad_value(kwargs, words):
         kwargs["prompts"] = UR3ePromptsConfig(**kwargs["prompts"])
     with pytest.raises(ValueError, match=words.replace("(", r"\(").replace("[", r"\[")):
         UR3eConfig(**kwargs)
+
+
+KEYBOARD_SCRIPT = """
+import time
+import numpy as np
+from lerobot_condground.robots import kinematics
+from lerobot_condground.robots.config_ur3e import UR3eConfig, UR3eSimConfig
+from lerobot_condground.robots.ur3e import UR3e
+from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eKeyboardConfig
+from lerobot_condground.teleoperators.ur3e_teleops import UR3eKeyboard
+robot = UR3e(UR3eConfig(backend="sim", sim=UR3eSimConfig(realtime=False)))
+teleop = UR3eKeyboard(UR3eKeyboardConfig(step=0.01))
+teleop.connect()
+robot.connect()
+start = kinematics.forward(robot.arm.state().q)[0]
+print("ready", flush=True)
+for _ in range(60):
+    robot.get_observation()
+    action = teleop.get_action()
+    robot.send_action(action)
+    time.sleep(0.02)
+end = kinematics.forward(robot.arm.state().q)[0]
+print("moved", *np.round(end - start, 4), "gripper", action["gripper.pos"], flush=True)
+teleop.disconnect()
+robot.disconnect()
+"""
+
+
+def test_keyboard_teleop_jogs_the_tool_with_ik():
+    """Keys typed into the terminal (a pseudo-terminal here) move the tool in Cartesian steps."""
+    import os
+    import pty
+    import subprocess
+    import sys
+
+    master, slave = pty.openpty()
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.Popen([sys.executable, "-c", KEYBOARD_SCRIPT], stdin=slave, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    os.close(slave)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        for key in "wwwiis ":  # +x three times, up twice, -x once, then the gripper
+            os.write(master, key.encode())
+            time.sleep(0.1)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+        os.close(master)
+    moved = out.split()
+    assert moved[0] == "moved", out + err[-2000:]
+    dx, dy, dz, gripper = float(moved[1]), float(moved[2]), float(moved[3]), float(moved[5])
+    assert dx == pytest.approx(0.02, abs=0.004) and abs(dy) < 0.004 and dz == pytest.approx(0.02, abs=0.004)
+    assert gripper == 1.0
