@@ -272,3 +272,39 @@ def test_keyboard_teleop_jogs_the_tool_with_ik():
     dx, dy, dz, gripper = float(moved[1]), float(moved[2]), float(moved[3]), float(moved[5])
     assert dx == pytest.approx(0.02, abs=0.004) and abs(dy) < 0.004 and dz == pytest.approx(0.02, abs=0.004)
     assert gripper == 1.0
+
+
+def _click(labels, label) -> str:
+    ys, xs = np.nonzero(labels == label)
+    i = np.argmin((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2)  # the entity's pixel nearest its centroid
+    return f"{xs[i]},{ys[i]}"
+
+
+def test_live_prompt_cameras_track_the_clicked_entities():
+    """--robot.prompts.segmenter=color: two clicks on the first frame give the prompt cameras, re-annotated
+    at every recorded episode; they show what the twin's privileged crops show."""
+    from lerobot_condground.envs.pickplace_env import PickPlaceEnv
+    from lerobot_condground.robots.config_ur3e import UR3ePromptsConfig
+
+    env = PickPlaceEnv(observation_height=96, observation_width=128, segmentation=True)
+    obs, _ = env.reset(seed=0)  # the twin's first scene
+    clicks = {"object": _click(obs["segmentation"], 1), "receptacle": _click(obs["segmentation"], 2)}
+    env.close()
+    robot = twin(prompts=UR3ePromptsConfig(segmenter="color", **clicks))
+    assert robot.observation_features["prompt_object"] == (64, 64, 3)
+    with robot:
+        obs = robot.get_observation()
+        truth = robot.arm.env._prompt_crops
+        for key in ("prompt_object", "prompt_receptacle"):
+            assert obs[key].shape == (64, 64, 3) and obs[key].dtype == np.uint8
+            same = np.abs(obs[key].astype(int) - truth[key]).mean()
+            other = np.abs(obs[key].astype(int) - truth["prompt_receptacle" if key == "prompt_object" else "prompt_object"]).mean()
+            assert same < other, (key, same, other)  # each crop shows its own entity
+        robot.send_action(action(HOME_QPOS + [0.1, 0, 0, 0, 0, 0]))
+        first = robot.get_observation()["prompt_object"]
+        np.testing.assert_array_equal(first, obs["prompt_object"])  # fixed for the episode
+
+    bad = twin(prompts=UR3ePromptsConfig(segmenter="color", object="500,20", receptacle=clicks["receptacle"]))
+    with pytest.raises(ValueError, match="500"):
+        bad.connect()
+    assert not bad.is_connected and sim_arm._CONNECTED == []

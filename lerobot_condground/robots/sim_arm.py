@@ -8,7 +8,6 @@ same safety limits and stall watchdog apply. Its cameras are LeRobot cameras of 
 from __future__ import annotations
 
 import logging
-import sys
 import threading
 import time
 
@@ -24,15 +23,6 @@ logger = logging.getLogger(__name__)
 _CONNECTED: list[SimArm] = []
 TRACKER_EVERY = 5
 
-# LeRobot gives robots no hook at the start of an episode; on hardware a person resets the scene in the
-# reset period. The twin resets its scene when one of LeRobot's recording loops starts a new episode:
-# (module, function) -> (local holding the loop's start time, whether that loop records).
-_EPISODE_LOOPS = {
-    ("lerobot.scripts.lerobot_record", "record_loop"): ("start_episode_t", lambda loc: loc.get("dataset") is not None),
-    ("lerobot.rollout.strategies.episodic", "_policy_loop"): ("start_t", lambda loc: True),
-}
-
-
 def active_twin() -> SimArm:
     """The connected twin of this process (cameras and the expert teleoperator attach to it)."""
     if len(_CONNECTED) != 1:
@@ -41,18 +31,6 @@ def active_twin() -> SimArm:
             "teleoperator need exactly one --robot.type=ur3e --robot.backend=sim robot, connected first"
         )
     return _CONNECTED[0]
-
-
-def recording_episode() -> float | None:
-    """The start time of the LeRobot episode loop that is recording now (one value per episode), or None."""
-    frame = sys._getframe(1)
-    while frame is not None:
-        entry = _EPISODE_LOOPS.get((frame.f_globals.get("__name__"), frame.f_code.co_name))
-        if entry is not None:
-            local = frame.f_locals
-            return local.get(entry[0]) if entry[1](local) else None
-        frame = frame.f_back
-    return None
 
 
 class TwinBackend:
@@ -94,7 +72,6 @@ class SimArm:
         self._thread = None
         self._running = False
         self._fault: BaseException | None = None
-        self._episode = None
         self._dirty = False  # the arm moved since the scene was laid out
 
     @property
@@ -132,12 +109,10 @@ class SimArm:
             self.loop.tick(self.clock)
             self._dirty = False
 
-    def maybe_new_episode(self) -> None:
-        episode = recording_episode()
-        if episode is not None and episode != self._episode:
-            self._episode = episode
-            if self._dirty:
-                self.reset_scene()
+    def new_episode(self) -> None:
+        """A recorded episode starts: lay out a fresh scene, unless this one is still untouched."""
+        if self._dirty:
+            self.reset_scene()
 
     def _step(self) -> None:
         self.loop.tick(self.clock)

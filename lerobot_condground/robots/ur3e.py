@@ -20,6 +20,7 @@ from lerobot.robots.robot import Robot
 from lerobot_condground.envs.robot import HOME_QPOS, MOTOR_NAMES
 
 from .config_ur3e import UR3eConfig
+from .episodes import recording_episode
 from .safety import SafetyLimits
 
 logger = logging.getLogger(__name__)
@@ -59,7 +60,8 @@ class UR3e(Robot):
         self.home = np.asarray(self.calibration.get("home", HOME_QPOS), dtype=float)
         self._target: np.ndarray | None = None
         self._prompts = None
-        self._prompt_scene = None
+        self._prompt_crops: dict | None = None
+        self._episode = None
 
     # ------------------------------------------------------------------ features
     @cached_property
@@ -162,26 +164,43 @@ class UR3e(Robot):
         from lerobot_condground.prompt_tracker import PromptTracker
         from lerobot_condground.segmenters import make_segmenter, parse_prompt
 
-        frame = self.cameras[cfg.camera].read()
-        if cfg.interactive:
-            from lerobot_condground.prompt_tracker import annotate_interactively
-
-            object_prompt, receptacle_prompt = annotate_interactively(frame)
-        else:
-            h, w = frame.shape[:2]
-            object_prompt = parse_prompt(cfg.object, (h, w))
-            receptacle_prompt = parse_prompt(cfg.receptacle, (h, w))
+        if not cfg.interactive:
+            cam = self.config.cameras[cfg.camera]
+            for role in ("object", "receptacle"):  # a click outside the image fails here, before any motion
+                try:
+                    parse_prompt(getattr(cfg, role), (cam.height, cam.width))
+                except ValueError as exc:
+                    raise ValueError(f"--robot.prompts.{role}={getattr(cfg, role)}: {exc}") from exc
         kwargs = {"model_id": cfg.sam2_model_id, "device": cfg.device} if cfg.segmenter == "sam2" else {}
         self._prompts = PromptTracker(make_segmenter(cfg.segmenter, **kwargs))
-        self._prompt_result = self._prompts.start(frame, object_prompt, receptacle_prompt)
 
     def _prompt_observation(self, frames: dict) -> dict:
+        """The episode's prompt crops. They are positionless appearance crops, fixed for the episode (see
+        `prompt_tracker`), so the segmenter runs once, on the episode's first frame, not on every frame:
+        live use costs one segmentation per episode."""
         cfg = self.config.prompts
         if cfg.segmenter == "privileged":
             crops = self.arm.env._prompt_crops
-            return {"prompt_object": crops["prompt_object"].copy(), "prompt_receptacle": crops["prompt_receptacle"].copy()}
-        result = self._prompts.track(frames[cfg.camera])
-        return {"prompt_object": result.object_crop, "prompt_receptacle": result.receptacle_crop}
+        else:
+            if self._prompt_crops is None:
+                frame = frames[cfg.camera]
+                if cfg.interactive:
+                    from lerobot_condground.prompt_tracker import annotate_interactively
+
+                    object_prompt, receptacle_prompt = annotate_interactively(frame)
+                else:
+                    object_prompt, receptacle_prompt = cfg.object, cfg.receptacle
+                result = self._prompts.start(frame, object_prompt, receptacle_prompt)
+                self._prompt_crops = {"prompt_object": result.object_crop, "prompt_receptacle": result.receptacle_crop}
+            crops = self._prompt_crops
+        return {key: crops[key].copy() for key in PROMPT_KEYS}
+
+    def new_episode(self) -> None:
+        """An episode starts: the twin lays out a fresh scene (if the last one was used) and the prompts are
+        annotated again on the next frame. LeRobot's recording loops trigger this by themselves."""
+        if self.config.backend == "sim":
+            self.arm.new_episode()
+        self._prompt_crops = None
 
     # ------------------------------------------------------------------ I/O
     def _require_connected(self) -> None:
@@ -190,8 +209,10 @@ class UR3e(Robot):
 
     def get_observation(self) -> dict:
         self._require_connected()
-        if self.config.backend == "sim":
-            self.arm.maybe_new_episode()
+        episode = recording_episode()
+        if episode is not None and episode != self._episode:
+            self._episode = episode
+            self.new_episode()
         state = self.arm.state()
         q = state.q + self.offsets
         obs = {name: float(v) for name, v in zip(MOTOR_NAMES, [*q, state.gripper], strict=True)}

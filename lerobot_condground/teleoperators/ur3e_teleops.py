@@ -194,7 +194,6 @@ class UR3eExpert(_UR3eTeleop):
         robot = self._attach()
         twin = robot.arm
         with twin.lock:
-            twin.maybe_new_episode()  # the expert may act before the observation of a new episode
             if twin.scene != self.scene:
                 self.expert.reset(twin.env)
                 self.scene = twin.scene
