@@ -362,8 +362,8 @@ def test_control_interface_fails_fast_without_script_port(fake):
 
 @pytest.mark.slow
 def test_control_interface_times_out_on_unexecuted_script():
-    """With the script sink on, ur_rtde uploads the script and waits 5 s for it to start, then gives up."""
-    with start_fake_controller(None, servers=("rtde", "dashboard", "script")) as f:
+    """A controller that takes the script but never starts it: ur_rtde waits 5 s for PLAYING, then gives up."""
+    with start_fake_controller(None, servers=("rtde", "dashboard", "script"), emulate_control_script=False) as f:
         out = run_client(f"""
             import rtde_control
             t0 = time.monotonic()
@@ -376,7 +376,9 @@ def test_control_interface_times_out_on_unexecuted_script():
         """, timeout=30)
         assert out["res"] == "ur_rtde: Failed to start control script, before timeout of 5 seconds"
         assert 4.5 < out["elapsed"] < 8
-        assert f.state()["scripts"][0].startswith("def rtde_control():")
+        st = f.state()
+        assert st["scripts"][0].startswith("def rtde_control():")
+        assert not st["control_script_running"] and st["program_state"] == "STOPPED"
 
 
 def test_forward_kinematics_matches_ur3e_zero_pose():
@@ -395,3 +397,205 @@ def test_side_channel_drops_connections_and_switches_servers(fake):
     fake.mode(dashboard="serve")
     with socket.create_connection((fake.host, 29999), timeout=2) as s:
         assert s.recv(1024).startswith(b"Connected")
+
+
+# ---------------------------------------------------------------------------------------------------
+# The control side: ur_rtde's rtde_control script, emulated by the fake at the RTDE register level
+# ---------------------------------------------------------------------------------------------------
+SERVO_ARGS = "0.5, 0.5, 0.002, 0.1, 300"  # speed, acceleration, time, lookahead_time, gain (ur_rtde's examples)
+
+
+@pytest.fixture(scope="module")
+def _control_fake_module():
+    with start_fake_controller(free_loopback_host(), servers=("rtde", "dashboard", "script")) as f:
+        yield f
+
+
+@pytest.fixture
+def control_fake(_control_fake_module):
+    """A fake with the realtime interface (30003) on: RTDEControlInterface's script runs there.
+
+    Shared by the control tests, reset before each: no script running (a failed test may leave one, and
+    a new RTDEControlInterface would first stop it), robot running, normal safety, empty logs.
+    """
+    fake = _control_fake_module
+    fake.set(program_state="STOPPED", safety_mode=1, robot_mode=7, protective_stop_unlock_delay_s=5.0)
+    fake.clear_logs()
+    return fake
+
+
+def test_control_interface_streams_servoj_and_the_arm_follows(control_fake):
+    fake = control_fake
+    q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
+    fake.set(actual_q=q0)
+    target = [q + d for q, d in zip(q0, (0.2, -0.1, 0.15, 0.05, -0.2, 0.3))]
+    out = run_client(f"""
+        import rtde_control, rtde_receive
+        host, q0, target = {fake.host!r}, {q0!r}, {target!r}
+        t0 = time.monotonic()
+        c = rtde_control.RTDEControlInterface(host)
+        res = dict(ctor_s=time.monotonic() - t0, running=c.isProgramRunning(), status=c.getRobotStatus(),
+                   connected=c.isConnected(), fake=side(host, "get")["state"]["control_script_running"])
+        r = rtde_receive.RTDEReceiveInterface(host)
+        oks, seen = [], []
+        t0 = time.monotonic()
+        for i in range(500):  # 1 s at 500 Hz; the set point ramps to the target over 0.8 s, then holds
+            t_start = c.initPeriod()
+            a = min(1.0, (i + 1) / 400)
+            oks.append(c.servoJ([x + (y - x) * a for x, y in zip(q0, target)], {SERVO_ARGS}))
+            if i % 100 == 50:
+                seen.append(r.getActualQ())
+            c.waitPeriod(t_start)
+        res.update(stream_s=time.monotonic() - t0, oks=sum(oks), seen=seen, at_end=r.getActualQ())
+        res["settle_s"] = until(lambda: max(abs(x - y) for x, y in zip(r.getActualQ(), target)) < 1e-4, 2.0)
+        res["stop"] = c.servoStop(2.0)  # returns once the script's stopl() is done: the arm is still
+        time.sleep(0.01)  # the receive interface's own stream may be a cycle behind the control one
+        held = r.getActualQ()
+        time.sleep(0.05)
+        res.update(held=held == r.getActualQ(), qd=r.getActualQd(), running_after=c.isProgramRunning())
+        done(res)
+    """)
+    assert out["running"] and out["fake"] and out["connected"]
+    assert out["status"] == 3  # robot_status_bits: power on | program running
+    assert out["ctor_s"] < 2.0
+    assert out["oks"] == 500 and 0.95 < out["stream_s"] < 1.3
+    # The arm moves with the stream (lagging the set point), reaches the held target, and stays after servoStop.
+    firsts = [q[0] for q in out["seen"]]
+    assert firsts == sorted(firsts) and q0[0] < firsts[0] < firsts[-1] < target[0]
+    assert out["settle_s"] is not None
+    assert out["stop"] is True and out["held"] and out["qd"] == [0.0] * 6 and out["running_after"]
+
+    st = fake.state()
+    servoj = [e for e in st["servo_log"] if e["cmd"] == "servoj"]
+    assert st["servoj_count"] == len(servoj) == 500
+    assert servoj[-1]["q"] == pytest.approx(target) and st["servo_target"] == pytest.approx(target)
+    assert 0.9 < servoj[-1]["t"] - servoj[0]["t"] < 1.3  # streamed at 500 Hz, not in a burst
+    assert st["servo_lookahead"] == 0.1 and st["servo_gain"] == 300 and st["servo_time"] == 0.002
+    assert st["actual_q"] == pytest.approx(target, abs=1e-3)
+    assert [e["cmd"] for e in st["servo_log"] if e["cmd"] != "servoj"] == ["script_start", "servo_stop"]
+    assert next(e for e in st["servo_log"] if e["cmd"] == "servo_stop")["a"] == 2.0
+    assert st["control_script_running"] and st["program_state"] == "PLAYING"  # os._exit: no stopScript
+
+    # The next client finds that script still running: ur_rtde sends it the stop command, stops the program
+    # through the dashboard, and uploads its own.
+    out = run_client(f"""
+        import rtde_control
+        c = rtde_control.RTDEControlInterface({fake.host!r})
+        done(dict(running=c.isProgramRunning(), teach=c.teachMode()))
+    """)
+    assert out == {"running": True, "teach": True}
+    st = fake.state()
+    assert st["control_script"]["starts"] == 2 and st["dashboard_log"][-1] == "stop"
+    assert [e["cmd"] for e in st["servo_log"] if e["cmd"] != "servoj"][-4:] == [
+        "stop_script", "script_end", "script_start", "teach_mode"]
+
+
+def test_control_interface_teach_mode_stop_script_and_disconnect(control_fake):
+    """Teach mode holds nothing: the side channel moves the arm by hand. Upper-range registers (offset 24)."""
+    fake = control_fake
+    fake.set(actual_q=[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+    hand_q = [0.3, -1.2, 1.4, -1.7, -1.5, 0.4]
+    out = run_client(f"""
+        import rtde_control, rtde_receive
+        host = {fake.host!r}
+        C = rtde_control.RTDEControlInterface
+        c = C(host, 500.0, C.FLAG_UPLOAD_SCRIPT | C.FLAG_UPPER_RANGE_REGISTERS)
+        r = rtde_receive.RTDEReceiveInterface(host)
+        res = dict(teach=c.teachMode(), fake_teach=side(host, "get")["state"]["teach_mode"])
+        side(host, "set " + json.dumps({{"actual_q": {hand_q!r}}}))  # an operator moves the arm
+        res["seen_s"] = until(lambda: r.getActualQ() == {hand_q!r})
+        time.sleep(0.05)
+        res["still"] = r.getActualQ() == {hand_q!r}
+        res["end"] = c.endTeachMode()
+        time.sleep(0.02)
+        res["after_end"] = r.getActualQ() == {hand_q!r}
+        c.stopScript()
+        res.update(running=c.isProgramRunning(), runtime=r.getRuntimeState(), status=c.getRobotStatus())
+        t0 = time.monotonic()
+        c.disconnect()
+        res.update(disconnect_s=time.monotonic() - t0, connected=c.isConnected())
+        done(res)
+    """)
+    assert out["teach"] is True and out["fake_teach"] is True
+    assert out["seen_s"] is not None and out["still"] and out["end"] is True and out["after_end"]
+    assert out["running"] is False and out["runtime"] == 1 and out["status"] == 1
+    assert out["connected"] is False and out["disconnect_s"] < 1.5
+    st = fake.state()
+    assert [e["cmd"] for e in st["servo_log"]] == ["script_start", "teach_mode", "end_teach_mode", "stop_script",
+                                                   "script_end"]
+    assert st["control_script"]["register_offset"] == 24 and st["control_script"]["end_reason"] == "stop_script"
+    assert not st["control_script_running"] and not st["teach_mode"] and st["actual_q"] == hand_q
+    commands = [e["values"]["input_int_register_24"] for e in st["events"]
+                if e["event"] == "input" and "input_int_register_24" in e["values"]]
+    # The register handshake: clear, then each command followed by a clear once the script answered 'done'.
+    assert commands == [0, 18, 0, 19, 0, 255, 0]
+
+
+def test_protective_stop_during_servo_stream_ends_the_script(control_fake):
+    fake = control_fake
+    q0 = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
+    fake.set(actual_q=q0, protective_stop_unlock_delay_s=0.0)
+    out = run_client(f"""
+        import rtde_control, rtde_receive, dashboard_client
+        host, q0 = {fake.host!r}, {q0!r}
+        c = rtde_control.RTDEControlInterface(host)
+        r = rtde_receive.RTDEReceiveInterface(host)
+        oks, t_stop, q_stop = [], None, None
+        for i in range(300):
+            t_start = c.initPeriod()
+            if i == 150:  # the arm hits something: the controller raises a protective stop
+                side(host, "set " + json.dumps({{"safety_mode": 3}}))
+                t_stop = time.monotonic()
+            ok = c.servoJ([x + 0.0005 * i for x in q0], {SERVO_ARGS})
+            oks.append(ok)
+            if t_stop is not None and not ok and q_stop is None:
+                res_first = (i, time.monotonic() - t_stop)
+                time.sleep(0.01)  # the receive stream may be a cycle behind the control one
+                q_stop = r.getActualQ()
+            c.waitPeriod(t_start)
+        time.sleep(0.05)
+        res = dict(oks=oks, first_false=res_first, running=c.isProgramRunning(), status=c.getRobotStatus(),
+                   connected=c.isConnected(), pstop=r.isProtectiveStopped(), runtime=r.getRuntimeState(),
+                   safety=r.getSafetyMode(), held=r.getActualQ() == q_stop,
+                   servo_stop=c.servoStop(), teach=c.teachMode())
+        # Recovery as on a real arm: unlock through the dashboard, then upload the control script again.
+        d = dashboard_client.DashboardClient(host); d.connect(); d.unlockProtectiveStop()
+        res["reupload"] = c.reuploadScript()
+        res["restart_s"] = until(c.isProgramRunning, 2.0)
+        res["servo_again"] = c.servoJ(q0, {SERVO_ARGS})
+        c.stopScript()
+        done(res)
+    """)
+    oks = out["oks"]
+    i_false, latency = out["first_false"]
+    assert all(oks[:150]) and not any(oks[i_false:]) and 150 <= i_false <= 155 and latency < 0.05
+    assert out["running"] is False and out["status"] == 1 and out["connected"] is True  # RTDE stays up
+    assert out["pstop"] is True and out["runtime"] == 1 and out["safety"] == 3 and out["held"]
+    assert out["servo_stop"] is False and out["teach"] is False  # every command: False, no exception
+    assert out["reupload"] is True and out["restart_s"] is not None and out["servo_again"] is True
+    st = fake.state()
+    ends = [e for e in st["servo_log"] if e["cmd"] == "script_end"]
+    assert [e["reason"] for e in ends] == ["safety mode PROTECTIVE_STOP", "stop_script"]
+    recorded = [e for e in st["servo_log"] if e["cmd"] == "servoj"]
+    before = [e for e in recorded if e["t"] < ends[0]["t"]]
+    assert 150 <= len(before) <= i_false and len(recorded) == len(before) + 1  # nothing while stopped
+    assert [e["cmd"] for e in st["servo_log"]].count("script_start") == 2
+    assert st["control_script"]["starts"] >= 2 and not st["control_script_running"]
+
+
+@pytest.mark.slow
+def test_control_script_refused_while_protective_stopped():
+    """The controller starts no program in a protective stop: ur_rtde's constructor times out after 5 s."""
+    with start_fake_controller(None, servers=("rtde", "dashboard", "script"), safety_mode=3) as f:
+        out = run_client(f"""
+            import rtde_control
+            try:
+                rtde_control.RTDEControlInterface({f.host!r})
+                res = "constructed"
+            except RuntimeError as exc:
+                res = str(exc)
+            done(dict(res=res))
+        """, timeout=30)
+        assert out["res"] == "ur_rtde: Failed to start control script, before timeout of 5 seconds"
+        assert f.state()["servo_log"][-1] == {"t": pytest.approx(0, abs=60), "cmd": "script_refused",
+                                               "reason": "safety mode PROTECTIVE_STOP"}

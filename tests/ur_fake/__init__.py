@@ -8,6 +8,14 @@ every port listens, and returns a ``FakeController`` that talks to the fake's JS
         fake.set(safety_mode=3)                                  # protective stop, seen within a cycle
         assert fake.state()["tool_digital_outputs"] == [True, False]
 
+With the realtime interface on (``servers=(..., "script")``) the fake also runs ur_rtde's control script, so
+``rtde_control.RTDEControlInterface(fake.host)`` connects and servoJ / servoStop / teachMode / endTeachMode /
+moveJ / stopScript work; ``state()`` then reports ``control_script_running``, ``teach_mode``, ``servo_target``
+(and ``servo_lookahead``, ``servo_gain``, ``servo_time``, ``servo_speed``, ``servo_acceleration``),
+``servoj_count`` and ``servo_log`` (the last 2000 of ``{"t", "cmd": "servoj", "q"}``, ``servo_stop``,
+``teach_mode``, ``end_teach_mode``, ``stop_script``, ``script_start``, ``script_end`` with its reason...).
+``set(safety_mode=3)`` ends the script as a protective stop does: every later command returns False.
+
 The fake is a separate process on purpose: ur_rtde's native calls block every Python thread of the
 process that makes them, so a fake living in the test process would stall under its own client.
 """
@@ -167,9 +175,10 @@ def start_fake_controller(host: str | None = None, *, servers=DEFAULT_SERVERS, m
                           **initial_state) -> FakeController:
     """Starts the fake on ``host`` (None: a free loopback address, retried on a lost race).
 
-    ``servers``: which of rtde/dashboard/gripper/script listen (the others refuse connections; the script
-    sink on 30003 is off by default); ``modes``: initial per-server modes (serve, refuse, silent, off),
-    applied after ``servers``; ``initial_state``: any key the side
+    ``servers``: which of rtde/dashboard/gripper/script listen (the others refuse connections; the realtime
+    interface on 30003, which records URScript and runs ur_rtde's control script, is off by default, so
+    RTDEControlInterface fails at once unless a test asks for it); ``modes``: initial per-server modes
+    (serve, refuse, silent, off), applied after ``servers``; ``initial_state``: any key the side
     channel's ``set`` takes (``robot_model="UR5"``, ``safety_mode=3``, ``gripper={...}``).
     """
     attempts = 5 if host is None else 1

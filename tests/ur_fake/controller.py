@@ -7,6 +7,10 @@ It serves, on one loopback address, what the plugin's UR3e path talks to:
 * the dashboard server (port 29999): the one-line text protocol;
 * the Robotiq URCap socket (port 63352): "SET ACT 1" / "GET POS" text, with a finger that moves at a
   finite speed and can stop on an object;
+* the realtime interface (port 30003, off unless asked for): records the URScript clients send and runs
+  ur_rtde's rtde_control script the way the controller would, at the level of the RTDE registers it
+  talks through (servoJ, servoStop, teach mode, moveJ, stopScript; see ControlScript), with an arm whose
+  joints follow the commands and a protective stop that ends the script;
 * a control side channel (port 30099): line-based JSON so a test can change the robot's state while real
   clients are connected and read back what the clients did.
 
@@ -28,6 +32,7 @@ import collections
 import json
 import math
 import os
+import re
 import signal
 import socket
 import struct
@@ -41,9 +46,9 @@ GRIPPER_PORT = 63352
 SCRIPT_PORT = 30003  # the realtime interface, where ur_rtde's RTDEControlInterface uploads its script
 CONTROL_PORT = 30099
 SERVERS = ("rtde", "dashboard", "gripper", "script")
-# The script sink is off unless asked for: a real controller accepts the script and runs it, the fake only
-# records it, so by default RTDEControlInterface fails at once (connection refused) instead of after its
-# 5 s wait for a script that never starts.
+# The script port is off unless asked for, so by default RTDEControlInterface fails at once (connection
+# refused) and the plugin's dry-run tests never start a control script. With it on, the fake records what
+# arrives and runs ur_rtde's control script (ControlScript below), as a controller would.
 DEFAULT_MODES = {"rtde": "serve", "dashboard": "serve", "gripper": "serve", "script": "off"}
 # "serve": normal; "refuse": accept then close at once (client sees EOF); "silent": accept, read and
 # never answer (client times out); "off": not listening (connection refused).
@@ -231,6 +236,9 @@ META_DEFAULTS = {
     "brake_release_delay_s": 0.3,  # IDLE -> RUNNING after 'brake release'
     "fieldbus_inputs": [],  # input names held by EtherNet/IP, PROFINET, MODBUS: RTDE answers IN_USE
     "max_rtde_frequency": RTDE_MAX_FREQUENCY,
+    # Run ur_rtde's control script when it arrives on port 30003 (False: only record it, as a controller
+    # that never starts it, so RTDEControlInterface times out after 5 s).
+    "emulate_control_script": True,
 }
 
 # RTDE outputs whose value, unless a test sets it, follows other state (None in the store = derived).
@@ -362,6 +370,321 @@ class Gripper:
         return out
 
 
+# ---------------------------------------------------------------------------------------------------
+# ur_rtde's control script, emulated at the RTDE register level
+# ---------------------------------------------------------------------------------------------------
+# RTDEControlInterface uploads rtde_control.script to port 30003 and talks to it only through RTDE
+# registers (offset 0, or 24 with FLAG_UPPER_RANGE_REGISTERS):
+#   input_int_register_0       command id (0 = none); input_int_register_1 the 'async' flag
+#   input_double_register_0..  arguments (servoJ: q 0-5, speed 6, acceleration 7, time 8, lookahead 9, gain 10)
+#   output_int_register_0      script -> client: 1 ready for a command, 2 done with the command
+#   output_int_register_2      async operation progress
+# and detects "the script runs" by runtime_state == PLAYING (isProgramRunning), nothing else.
+CMD_NONE, CMD_MOVEJ, CMD_SERVOJ, CMD_SPEED_STOP, CMD_SERVO_STOP = 0, 1, 11, 15, 16
+CMD_TEACH_MODE, CMD_END_TEACH_MODE, CMD_PROTECTIVE_STOP = 18, 19, 31
+CMD_STOPL, CMD_STOPJ, CMD_STOP_SCRIPT = 33, 34, 255
+# Commands the script's main loop treats as "realtime": processed every cycle while the register holds
+# them and answered with "ready", never "done" (the client does not wait for them). Read from the
+# uploaded script when it has the line; this is the list of ur_rtde 1.6.
+REALTIME_CMDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
+SCRIPT_READY, SCRIPT_DONE = 1, 2
+CMD_NAMES = {CMD_MOVEJ: "movej", CMD_SERVOJ: "servoj", CMD_SPEED_STOP: "speed_stop", CMD_SERVO_STOP: "servo_stop",
+             CMD_TEACH_MODE: "teach_mode", CMD_END_TEACH_MODE: "end_teach_mode",
+             CMD_PROTECTIVE_STOP: "protective_stop", CMD_STOPL: "stopl", CMD_STOPJ: "stopj",
+             CMD_STOP_SCRIPT: "stop_script"}
+# e-Series joint speed limits (base/shoulder/elbow 180 deg/s, wrists 360 deg/s): servoj cannot outrun them.
+MAX_JOINT_SPEED = [math.pi] * 3 + [2 * math.pi] * 3
+SERVO_LOG_LEN = 2000
+# Safety modes in which the controller runs programs; any other one stops the control script.
+RUNNABLE_SAFETY = (1, 2)
+
+
+def parse_program(text: str) -> dict:
+    """What the fake needs from an uploaded URScript program: its name, whether it is ur_rtde's control
+    script, that script's register offset and its realtime command list."""
+    m = re.match(r"\s*(?:def|sec)\s+(\w+)\s*\(", text)
+    info = {"name": m.group(1) if m else None, "control": False, "offset": 0, "realtime": REALTIME_CMDS}
+    # ur_rtde injects the offset after a comment: "global reg_offset_int = # int register offset\n0".
+    off = re.search(r"global\s+reg_offset_int\s*=\s*(?:#[^\n]*\n)?\s*(\d+)", text)
+    info["control"] = bool(m and "signal_ready()" in text and "read_input_integer_reg(0)" in text)
+    if off:
+        info["offset"] = int(off.group(1))
+    rt = re.search(r"if\s+((?:cmd\s*==\s*\d+\s*(?:or\s+)?)+):\s*\n\s*# for realtime commands", text)
+    if rt:
+        info["realtime"] = frozenset(int(n) for n in re.findall(r"\d+", rt.group(1)))
+    return info
+
+
+class ControlScript:
+    """The running rtde_control.script: its main loop, the commands the plugin uses, and the arm's motion.
+
+    Lazy rather than a 500 Hz thread: ``advance(now)`` runs the script's loop body and integrates the
+    motion up to ``now``, and it is called whenever anything observes or changes the state (every RTDE
+    output package, every input package, the side channel, the dashboard). Results are the same as a
+    loop polled every cycle, without a third busy thread in a fake that shares 2 cores with its client.
+    The caller holds the controller lock.
+    """
+
+    def __init__(self, ctl: "Controller"):
+        self.ctl = ctl
+        self.running = False
+        self.offset = 0
+        self.realtime = REALTIME_CMDS
+        self.executing = False  # the script's 'executing_cmd': a non-realtime command was taken
+        self.busy = None  # None, "stop" or "move": the main loop is blocked in stopl/stopj/movej
+        self.busy_signals_done = False  # a synchronous command answers 'done' once its motion ends
+        self.stop_decel = 10.0
+        self.motion = None  # None, "servo", "stop", "move": what moves the joints
+        self.teach_mode = False
+        self.servo = {"target": None, "speed": 0.0, "acceleration": 0.0, "time": 0.002, "lookahead": 0.1,
+                      "gain": 300.0}
+        self.move_target, self.move_speed = None, 1.05
+        self.qd = [0.0] * 6
+        self.last_t = time.monotonic()
+        self.log = collections.deque(maxlen=SERVO_LOG_LEN)
+        self.async_wr_count = 0
+        self.async_op_id = 0
+        self.last_cmd = 0
+        self.end_reason = None
+        self.starts = 0
+
+    # ---- registers ---------------------------------------------------------------------------------
+    def _in_int(self, i: int) -> int:
+        return int(self.ctl.state[f"input_int_register_{i + self.offset}"])
+
+    def _in_double(self, i: int) -> float:
+        return float(self.ctl.state[f"input_double_register_{i + self.offset}"])
+
+    def _out_int(self, i: int, value: int) -> None:
+        self.ctl.state[f"output_int_register_{i + self.offset}"] = int(value)
+
+    def _record(self, cmd: str, **data) -> None:
+        self.log.append({"t": round(self.ctl.now(), 6), "cmd": cmd, **data})
+
+    def _async_progress(self, value: int) -> None:
+        """The script's write_async_progress_register: change count in bits 16-23, operation id in 24-30,
+        bit 15 'running' and the progress in bits 0-14 while an operation runs."""
+        self.async_wr_count = (self.async_wr_count + 1) % 128
+        if value == 0:
+            self.async_op_id = (self.async_op_id + 1) % 128
+        reg = self.async_wr_count * 65536 + self.async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self._out_int(2, reg)
+
+    # ---- lifecycle ---------------------------------------------------------------------------------
+    def program_received(self, text: str) -> None:
+        """A complete program arrived on port 30003: a real controller stops what runs and starts it."""
+        ctl, s = self.ctl, self.ctl.state
+        info = parse_program(text)
+        if not s["emulate_control_script"]:
+            ctl.log("script", "program_recorded", name=info["name"])
+            return
+        if not info["control"]:  # only ur_rtde's control script is emulated; others are recorded
+            ctl.log("script", "program_not_emulated", name=info["name"])
+            return
+        # The realtime interface runs programs only in remote control, powered with brakes released and
+        # outside any safety stop; otherwise nothing starts and ur_rtde times out waiting for PLAYING.
+        why = None
+        if not s["is_in_remote_control"]:
+            why = "local control"
+        elif s["robot_mode"] != 7:
+            why = f"robot mode {ROBOT_MODES.get(s['robot_mode'], s['robot_mode'])}"
+        elif s["safety_mode"] not in RUNNABLE_SAFETY:
+            why = f"safety mode {SAFETY_MODES.get(s['safety_mode'], s['safety_mode'])}"
+        if why is not None:
+            ctl.log("script", "program_refused", name=info["name"], reason=why)
+            self._record("script_refused", reason=why)
+            return
+        if self.running:
+            self.end("replaced by a new program")
+        self.advance(time.monotonic())
+        self.running = True
+        self.starts += 1
+        self.offset, self.realtime = info["offset"], info["realtime"]
+        self.executing, self.busy, self.motion, self.teach_mode = False, None, None, False
+        self.qd = [0.0] * 6
+        # The script's header defaults; servo_target becomes real with the first servoJ.
+        self.servo = {"target": None, "speed": 0.0, "acceleration": 0.0, "time": 0.002, "lookahead": 0.1,
+                      "gain": 300.0}
+        self.end_reason = None
+        s["program_state"] = "PLAYING"  # runtime_state PLAYING: what isProgramRunning() waits for
+        self._async_progress(-1)  # reset_async_progress()
+        self._out_int(0, SCRIPT_READY)  # signal_ready()
+        self._record("script_start", offset=self.offset)
+        ctl.log("script", "control_script_start", offset=self.offset)
+
+    def end(self, reason: str) -> None:
+        """The program ends (stop command, safety stop, dashboard stop, runtime error): the arm stays put."""
+        if not self.running:
+            return
+        self.running = False
+        self.executing, self.busy, self.motion, self.teach_mode = False, None, None, False
+        self.qd = [0.0] * 6
+        s = self.ctl.state
+        s["actual_qd"] = [0.0] * 6
+        if s["program_state"] in ("PLAYING", "PAUSED"):
+            s["program_state"] = "STOPPED"
+        self.end_reason = reason
+        self._record("script_end", reason=reason)
+        self.ctl.log("script", "control_script_end", reason=reason)
+
+    # ---- the main loop -----------------------------------------------------------------------------
+    def advance(self, now: float) -> None:
+        dt, self.last_t = max(0.0, now - self.last_t), now
+        if not self.running:
+            return
+        state = self.ctl.state["program_state"]
+        if state == "STOPPED":  # stopped from outside: dashboard 'stop', 'power off', a side-channel set
+            self.end("program stopped")
+            return
+        if state != "PLAYING":  # paused: nothing runs, nothing moves
+            return
+        self._move(dt)
+        self._step()
+
+    def on_input(self, values: dict, now: float) -> None:
+        """An RTDE input package was applied: the script sees it in its next cycle."""
+        self.advance(now)
+        key = f"input_int_register_{self.offset}"
+        if (self.running and values.get(key) == CMD_SERVOJ and self.busy is None
+                and self.ctl.state["program_state"] == "PLAYING"):
+            # Logged per package, not per cycle: one entry per servoJ() call of the client.
+            self.ctl.counters["servoj"] += 1
+            self._record("servoj", q=list(self.servo["target"]))
+
+    def _step(self) -> None:
+        """One pass of the script's 'while keep_running' body (the busy part is _move's)."""
+        if self.busy is not None:
+            return
+        cmd = self._in_int(0)
+        if cmd in self.realtime:
+            self._process(cmd)
+            if self.running:
+                self._out_int(0, SCRIPT_READY)
+        elif cmd == CMD_NONE:
+            self.executing = False
+            self._out_int(0, SCRIPT_READY)
+        elif not self.executing:
+            self.executing = True
+            self._process(cmd)
+            if self.running and self.busy is None and cmd != CMD_STOP_SCRIPT:
+                self._out_int(0, SCRIPT_DONE)
+
+    def _process(self, cmd: int) -> None:
+        s = self.ctl.state
+        self.last_cmd = cmd
+        if cmd == CMD_SERVOJ:
+            self.servo = {"target": [self._in_double(i) for i in range(6)], "speed": self._in_double(6),
+                          "acceleration": self._in_double(7), "time": self._in_double(8),
+                          "lookahead": self._in_double(9), "gain": self._in_double(10)}
+            if not self.teach_mode:
+                self.motion = "servo"
+        elif cmd in (CMD_SERVO_STOP, CMD_SPEED_STOP, CMD_STOPL, CMD_STOPJ):
+            decel = self._in_double(0)
+            asynchronous = cmd in (CMD_STOPL, CMD_STOPJ) and self._in_int(1) == 1
+            self._record(CMD_NAMES[cmd], a=decel)
+            self.stop_decel = decel if decel > 0 else 10.0
+            self.motion = "stop" if any(self.qd) else None
+            if self.motion == "stop" and not asynchronous:  # stopl() blocks the loop until standstill
+                self.busy, self.busy_signals_done = "stop", True
+        elif cmd == CMD_MOVEJ:
+            q = [self._in_double(i) for i in range(6)]
+            speed, asynchronous = self._in_double(6), self._in_int(1) == 1
+            self._record("movej", q=q, v=speed, a=self._in_double(7), asynchronous=asynchronous)
+            self.move_target, self.move_speed = q, max(speed, 1e-3)
+            self.motion = "move"
+            if not asynchronous:
+                self.busy, self.busy_signals_done = "move", True
+        elif cmd == CMD_TEACH_MODE:
+            self._record("teach_mode")
+            self.teach_mode, self.motion, self.qd = True, None, [0.0] * 6
+            s["actual_qd"] = [0.0] * 6
+        elif cmd == CMD_END_TEACH_MODE:
+            self._record("end_teach_mode")
+            self.teach_mode = False
+        elif cmd == CMD_PROTECTIVE_STOP:
+            self._record("protective_stop")
+            self.ctl.protective_stop_at = time.monotonic()
+            s["safety_mode"] = 3
+            self.end("protective stop")
+        elif cmd == CMD_STOP_SCRIPT:
+            self._record("stop_script")
+            self.end("stop_script")
+        else:
+            # Not emulated: end the program the way a URScript runtime error does, so a test that strays
+            # off the emulated commands fails visibly (ur_rtde returns False) instead of silently passing.
+            self._record("unsupported", id=cmd)
+            self.end(f"command {cmd} is not emulated by the fake")
+
+    # ---- motion ------------------------------------------------------------------------------------
+    def _move(self, dt: float) -> None:
+        if self.teach_mode or self.motion is None or dt <= 0:
+            return
+        s = self.ctl.state
+        q = list(s["actual_q"])
+        if self.motion == "servo" and self.servo["target"] is not None:
+            # servoj as a first-order lag with the lookahead time as time constant, within joint speeds.
+            tau = max(self.servo["lookahead"], 0.002)
+            alpha = 1.0 - math.exp(-dt / tau)
+            for i, target in enumerate(self.servo["target"]):
+                step = (target - q[i]) * alpha
+                lim = MAX_JOINT_SPEED[i] * dt
+                step = max(-lim, min(lim, step))
+                q[i] += step
+                if abs(target - q[i]) < 1e-7:
+                    q[i] = target
+                self.qd[i] = step / dt
+        elif self.motion == "stop":
+            # Decelerate the current joint velocity at the requested rate (rad/s^2 applied to the fastest
+            # joint, the others scaled with it so the path keeps its direction).
+            v = max(abs(x) for x in self.qd)
+            a = self.stop_decel
+            if v <= a * dt:
+                t_stop = v / a
+                q = [qi + qdi * t_stop / 2 for qi, qdi in zip(q, self.qd)]
+                self.qd = [0.0] * 6
+                self.motion = None
+            else:
+                scale = (v - a * dt) / v
+                q = [qi + qdi * (1 + scale) / 2 * dt for qi, qdi in zip(q, self.qd)]
+                self.qd = [x * scale for x in self.qd]
+        elif self.motion == "move" and self.move_target is not None:
+            # movej at constant speed of the leading joint, all joints arriving together.
+            delta = [t - qi for t, qi in zip(self.move_target, q)]
+            dist = max(abs(x) for x in delta)
+            step = self.move_speed * dt
+            if dist <= step:
+                q, self.qd, self.motion = list(self.move_target), [0.0] * 6, None
+            else:
+                self.qd = [x / dist * self.move_speed for x in delta]
+                q = [qi + x / dist * step for qi, x in zip(q, delta)]
+        s["actual_q"] = q
+        s["actual_qd"] = list(self.qd)
+        if self.motion is None and self.busy is not None:  # stopl/movej returned: process_cmd ends
+            self.busy = None
+            if self.busy_signals_done:
+                self._out_int(0, SCRIPT_DONE)
+
+    def snapshot(self) -> dict:
+        return {
+            "control_script_running": self.running,
+            "teach_mode": self.teach_mode,
+            "servoing": self.motion == "servo",
+            "servo_target": self.servo["target"],
+            "servo_lookahead": self.servo["lookahead"],
+            "servo_gain": self.servo["gain"],
+            "servo_time": self.servo["time"],
+            "servo_speed": self.servo["speed"],
+            "servo_acceleration": self.servo["acceleration"],
+            "servo_log": list(self.log),
+            "servoj_count": self.ctl.counters.get("servoj", 0),
+            "control_script": {"running": self.running, "starts": self.starts, "register_offset": self.offset,
+                               "executing": self.executing, "busy": self.busy, "motion": self.motion,
+                               "last_cmd": self.last_cmd, "end_reason": self.end_reason},
+        }
+
+
 class Controller:
     """Shared robot state and the protocol logic of the three servers; one lock serializes it."""
 
@@ -387,6 +710,7 @@ class Controller:
         self.counters = collections.Counter()
         self.stop_event = threading.Event()
         self._fk_cache = (None, None)
+        self.script = ControlScript(self)  # before set_state: it advances the script
         self.set_state(initial)
 
     # ---- bookkeeping -----------------------------------------------------------------------------
@@ -411,6 +735,7 @@ class Controller:
     # ---- state access ----------------------------------------------------------------------------
     def set_state(self, updates: dict) -> None:
         with self.lock:
+            self.script.advance(time.monotonic())  # motion up to now happened under the old state
             for key, value in updates.items():
                 if key == "gripper":
                     self._set_gripper(value)
@@ -430,6 +755,12 @@ class Controller:
                     raise StateError(f"{key} cannot be null (only derived values can: {DERIVED})")
                 if key == "safety_mode" and value == 3 and self.state["safety_mode"] != 3:
                     self.protective_stop_at = time.monotonic()
+                # A safety stop or losing power ends a program sent to port 30003 (runtime_state leaves
+                # PLAYING; ur_rtde has to re-upload its script), unlike a loaded program, paused below.
+                if key == "safety_mode" and value not in RUNNABLE_SAFETY:
+                    self.script.end(f"safety mode {SAFETY_MODES.get(value, value)}")
+                if key == "robot_mode" and value != 7:
+                    self.script.end(f"robot mode {ROBOT_MODES.get(value, value)}")
                 if key == "safety_mode" and self.state["program_state"] in ("PLAYING", "PAUSED"):
                     # A protective/safeguard stop pauses the running program; an emergency stop stops it.
                     if value in EMERGENCY_STOPS:
@@ -437,6 +768,7 @@ class Controller:
                     elif value in (3, 5, 12, 13) and self.state["program_state"] == "PLAYING":
                         self.state["program_state"] = "PAUSED"
                 self.state[key] = value
+            self.script.advance(time.monotonic())  # a change (program_state STOPPED...) acts at once
             self.log("control", "set", keys=sorted(updates))
 
     def _set_gripper(self, value: dict) -> None:
@@ -497,6 +829,7 @@ class Controller:
     def snapshot(self) -> dict:
         with self.lock:
             self._apply_pending()
+            self.script.advance(time.monotonic())
             self.gripper.advance(time.monotonic(), self._gripper_frozen())
             out = {}
             for key in self.state:
@@ -513,6 +846,7 @@ class Controller:
             out["gripper_log"] = list(self.gripper_log)
             out["scripts"] = list(self.scripts)
             out["counters"] = dict(self.counters)
+            out.update(self.script.snapshot())
             out["uptime_s"] = round(self.now(), 4)
             return out
 
@@ -523,6 +857,7 @@ class Controller:
             self.gripper_log.clear()
             self.scripts.clear()
             self.counters.clear()
+            self.script.log.clear()
 
     def set_mode(self, server: str, mode: str) -> None:
         if server not in SERVERS or mode not in SERVER_MODES:
@@ -586,6 +921,7 @@ class Controller:
                 if name.startswith("input_") or name == "external_force_torque":
                     s[name] = list(value) if isinstance(value, tuple) else value
             self.counters["rtde_input_packages"] += 1
+            self.script.on_input(d, time.monotonic())
         self.log("rtde", "input", session=session.sid, values={k: _jsonable(v) for k, v in d.items()})
 
     # ---- dashboard -------------------------------------------------------------------------------
@@ -595,7 +931,11 @@ class Controller:
         with self.lock:
             self._apply_pending()
             self.dashboard_log.append(cmd)
+            self.script.advance(time.monotonic())
+            if cmd.startswith("load "):  # loading a program stops a script sent to port 30003
+                self.script.end(f"dashboard {cmd}")
             response, close = self._dashboard(cmd)
+            self.script.advance(time.monotonic())  # 'stop' / 'power off' end the script at once
         self.log("dashboard", "command", command=cmd, response=response)
         return response, close
 
@@ -621,7 +961,9 @@ class Controller:
             s["program_state"] = "PLAYING"
             return "Starting program", False
         if cmd == "stop":
-            if program is None:
+            # A program sent to port 30003 is the controller's current program too: ur_rtde stops a script it
+            # finds running with stopScript() and then this, and throws unless the answer is "Stopped".
+            if program is None and self.script.starts == 0:
                 return "Failed to execute: stop", False
             s["program_state"] = "STOPPED"
             return "Stopped", False
@@ -968,6 +1310,7 @@ class RtdeSession:
         flat = [recipe.id] if self.protocol >= 2 else []
         with ctl.lock:
             ctl._apply_pending()
+            ctl.script.advance(time.monotonic())  # the control script's cycle and the arm's motion
             for name, t in zip(recipe.names, recipe.types):
                 v = ctl.value(name)
                 if t in TYPE_LENGTHS:
@@ -1128,12 +1471,19 @@ def serve_gripper(ctl: Controller, conn: socket.socket, peer) -> None:
 
 
 def serve_script(ctl: Controller, conn: socket.socket, peer) -> None:
-    """Records URScript sent to the realtime port; never runs it (so nothing sets 'program running')."""
+    """The realtime interface: records the URScript clients send and hands each complete program over.
+
+    ur_rtde keeps this connection open and sends a program whenever it (re)starts its control script, so a
+    program is complete at its closing top-level ``end`` line, not at EOF. A bare line outside ``def``/``sec``
+    is a one-line program, as on the controller.
+    """
     ctl.log("script", "connect", peer=f"{peer[0]}:{peer[1]}")
     chunks = bytearray()
     with ctl.lock:
         ctl.scripts.append("")
         index = len(ctl.scripts) - 1
+    pending = b""  # bytes after the last complete line
+    program: list[str] = []  # lines of the program being received
     while True:
         data = conn.recv(65536)
         if not data:
@@ -1142,6 +1492,23 @@ def serve_script(ctl: Controller, conn: socket.socket, peer) -> None:
         with ctl.lock:
             if index < len(ctl.scripts):
                 ctl.scripts[index] = chunks.decode("utf-8", "replace")
+        pending += data
+        *lines, pending = pending.split(b"\n")
+        for raw in lines:
+            line = raw.decode("utf-8", "replace").rstrip("\r")
+            if not program:
+                if re.match(r"(def|sec)\s+\w+\s*\(", line):
+                    program = [line]
+                elif line.strip():
+                    with ctl.lock:
+                        ctl.script.program_received(line + "\n")
+                continue
+            program.append(line)
+            if line.rstrip() == "end":  # top level: inner blocks' 'end' are indented
+                text, program = "\n".join(program) + "\n", []
+                ctl.log("script", "program", chars=len(text))
+                with ctl.lock:
+                    ctl.script.program_received(text)
     ctl.log("script", "disconnect", peer=f"{peer[0]}:{peer[1]}", received=len(chunks))
 
 
