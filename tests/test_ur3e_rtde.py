@@ -184,3 +184,138 @@ def test_tool_digital_output_gripper_through_rtde_io(fake):
     assert fake.state()["tool_digital_outputs"] == [False, True]
     with pytest.raises(ValueError, match="outputs 0 and 1"):
         DigitalOutputGripper(fake.host, output=2)
+
+
+# ---------------------------------------------------------------------- control path (emulated script)
+CONTROL_SERVERS = ("rtde", "dashboard", "gripper", "script")
+
+
+@pytest.fixture
+def controller():
+    with start_fake_controller(free_loopback_host(), servers=CONTROL_SERVERS, actual_q=Q) as fake:
+        yield fake
+
+
+def action(q, gripper=0.0) -> dict:
+    return dict(zip(MOTOR_NAMES, [*map(float, q), float(gripper)], strict=True))
+
+
+def test_servoj_stream_interpolates_within_limits_and_a_stall_stops_it(controller):
+    """Through the real RTDEControlInterface: 500 Hz servoJ set points between 20 Hz targets, the speed
+    limit on every set point, the configured lookahead/gain, and servoStop two control periods after the
+    stream of targets stopped."""
+    robot = UR3e(UR3eConfig(host=controller.host, connect_timeout_s=10.0, servoj_gain=500))
+    robot.connect()
+    try:
+        controller.clear_logs()
+        q = np.array(Q)
+        for _ in range(20):  # base joint at 1 rad/s for 1 s
+            q[0] += 0.05
+            robot.send_action(action(q, gripper=1.0))
+            time.sleep(0.05)
+        assert controller.wait_for(lambda s: any(e["cmd"] == "servo_stop" for e in s["servo_log"]), timeout=2)
+        state = controller.state()
+        log = state["servo_log"]
+        servo = [e for e in log if e["cmd"] == "servoj"]
+        stop = next(e for e in log if e["cmd"] == "servo_stop")
+        t = np.array([e["t"] for e in servo])
+        setpoints = np.array([e["q"] for e in servo])
+        assert 350 < len(servo) / (t[-1] - t[0]) < 600  # the servo rate
+        assert np.abs(np.diff(setpoints, axis=0)).max() <= 2.0 * 0.002 * 1.05  # velocity limit per tick
+        assert state["servo_lookahead"] == pytest.approx(0.1) and state["servo_gain"] == pytest.approx(500)
+        assert setpoints[-1][0] == pytest.approx(q[0], abs=1e-6)  # the last target was reached
+        reached = t[np.argmax(np.abs(setpoints[:, 0] - q[0]) < 1e-9)]
+        # Stopped at most two periods after the last command, which the set points reach one period after it.
+        assert stop["t"] - reached <= 0.05 + 0.03
+        # The arm followed (behind its set point by servoJ's lookahead, then braked by servoStop).
+        assert robot.get_observation()["shoulder_pan.pos"] > Q[0] + 0.8
+        assert state["gripper"]["PRE"] > 200  # the Robotiq was told to close
+    finally:
+        robot.disconnect()
+    cmds = [e["cmd"] for e in controller.state()["servo_log"]]
+    assert "stop_script" in cmds[-3:] and not controller.state()["control_script_running"]
+
+
+def test_protective_stop_while_streaming(controller):
+    robot = UR3e(UR3eConfig(host=controller.host, gripper="none"))
+    robot.connect()
+    try:
+        q = np.array(Q)
+        for _ in range(4):
+            q[1] += 0.02
+            robot.send_action(action(q))
+            time.sleep(0.05)
+        controller.set(safety_mode=3)
+        with pytest.raises(ArmFault, match="protective stop|control script stopped"):
+            for _ in range(40):
+                q[1] += 0.01
+                robot.send_action(action(q))
+                time.sleep(0.05)
+    finally:
+        robot.disconnect()
+
+
+FREEDRIVE_SCRIPT = """
+import sys, time
+from lerobot_condground.robots.config_ur3e import UR3eConfig
+from lerobot_condground.robots.ur3e import UR3e
+from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eFreedriveConfig
+from lerobot_condground.teleoperators.ur3e_teleops import UR3eFreedrive
+teleop = UR3eFreedrive(UR3eFreedriveConfig())
+teleop.connect()
+robot = UR3e(UR3eConfig(host=sys.argv[1], gripper="none"))
+robot.connect()
+for i in range(40):
+    robot.get_observation()
+    action = teleop.get_action()
+    robot.send_action(action)
+    if i == 0:
+        print("teaching", flush=True)
+    time.sleep(0.05)
+print("last", action["shoulder_pan.pos"], action["gripper.pos"], flush=True)
+robot.disconnect()
+teleop.disconnect()
+"""
+
+
+def test_freedrive_teleop_records_the_hand_guided_joints(controller):
+    """Teach mode through the real control interface; the joints a hand puts the arm in are the actions, and
+    a key (typed into a pseudo-terminal) toggles the gripper."""
+    import pty
+
+    master, slave = pty.openpty()
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.Popen([sys.executable, "-c", FREEDRIVE_SCRIPT, controller.host], stdin=slave,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    os.close(slave)
+    try:
+        lines = iter(proc.stdout.readline, "")
+        assert any(line.strip() == "teaching" for line in lines)
+        assert controller.wait_for(lambda s: s["teach_mode"], timeout=3)
+        controller.set(actual_q=[0.7, *Q[1:]])  # the hand moves the base joint
+        os.write(master, b" ")
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        os.close(master)
+    last = out.split()
+    assert last[0] == "last", out + err[-2000:]
+    assert float(last[1]) == pytest.approx(0.7) and float(last[2]) == 1.0
+    cmds = [e["cmd"] for e in controller.state()["servo_log"]]
+    assert "teach_mode" in cmds and "end_teach_mode" in cmds and "stop_script" in cmds[-3:]
+    assert not any(c == "servoj" for c in cmds[cmds.index("teach_mode"):cmds.index("end_teach_mode")])
+
+
+def test_lerobot_calibrate_stores_the_home_pose(controller, tmp_path):
+    from conftest import BIN
+
+    proc = subprocess.run(
+        [str(BIN / "lerobot-calibrate"), "--robot.type=ur3e", f"--robot.host={controller.host}", "--robot.id=lab",
+         f"--robot.calibration_dir={tmp_path}", "--robot.gripper=none"],
+        input="\n", capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    import json
+
+    assert json.loads((tmp_path / "lab.json").read_text())["home"] == pytest.approx(Q)
+    assert UR3e(UR3eConfig(host=controller.host, id="lab", calibration_dir=tmp_path)).home == pytest.approx(Q)

@@ -28,7 +28,9 @@ from .servo_loop import ArmState, ServoLoop
 logger = logging.getLogger(__name__)
 
 DASHBOARD_PORT, RTDE_PORT = 29999, 30004
-_STATE_SIZE = 6 + 6 + 6  # q, qd, gripper, safety_mode, streaming, freedrive, stalls, time
+_STATE_SIZE = 6 + 6 + 6
+_SCRIPT_STOPPED = ("The UR control script stopped (a stop on the pendant, a safety stop, or another program); the "
+                   "arm no longer follows commands. Check the pendant, then reconnect.")  # q, qd, gripper, safety_mode, streaming, freedrive, stalls, time
 
 
 def probe(host: str, port: int, timeout: float) -> None:
@@ -116,9 +118,12 @@ class URBackend:
                 self._gripper_closure, self.receive.getSafetyMode())
 
     def servo(self, q) -> None:
-        if self.control is not None:
-            self.control.servoJ(list(q), 0.0, 0.0, self.servo_period, self.cfg["servoj_lookahead_time"],
-                                self.cfg["servoj_gain"])
+        if self.control is not None and not self.control.servoJ(
+            list(q), 0.0, 0.0, self.servo_period, self.cfg["servoj_lookahead_time"], self.cfg["servoj_gain"]
+        ):
+            # ur_rtde answers False, silently, once the control script has stopped (stop pressed on the
+            # pendant, a safety stop): the arm no longer follows, and must not be thought to.
+            raise ArmFault(_SCRIPT_STOPPED)
 
     def servo_stop(self) -> None:
         if self.control is not None:
@@ -133,7 +138,8 @@ class URBackend:
     def freedrive(self, on: bool) -> None:
         if self.control is None:
             raise ValueError("Freedrive needs the control interface; it is off with --robot.dry_run=true")
-        self.control.teachMode() if on else self.control.endTeachMode()
+        if not (self.control.teachMode() if on else self.control.endTeachMode()):
+            raise ArmFault(_SCRIPT_STOPPED)
 
     def start_period(self):
         return self.control.initPeriod() if self.control is not None else time.perf_counter()

@@ -78,7 +78,7 @@ class ServoLoop:
         if self._gripper_sent is None or abs(gripper - self._gripper_sent) > 1e-3:
             self.backend.set_gripper(float(gripper))
             self._gripper_sent = float(gripper)
-        if q is None:
+        if q is None or self._freedrive:  # a hand guides the arm: joint targets would fight it
             return
         if not self.streaming:
             # (Re)start from where the arm is: no jump toward a set point from before a stall.
