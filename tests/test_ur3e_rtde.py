@@ -318,4 +318,15 @@ def test_lerobot_calibrate_stores_the_home_pose(controller, tmp_path):
     import json
 
     assert json.loads((tmp_path / "lab.json").read_text())["home"] == pytest.approx(Q)
-    assert UR3e(UR3eConfig(host=controller.host, id="lab", calibration_dir=tmp_path)).home == pytest.approx(Q)
+    # The calibrated arm, found elsewhere, goes home on connect through the safety layer.
+    controller.set(actual_q=[Q[0] + 0.3, *Q[1:]])
+    robot = UR3e(UR3eConfig(host=controller.host, id="lab", calibration_dir=tmp_path, gripper="none",
+                            move_home_on_connect=True))
+    assert robot.home == pytest.approx(Q)
+    start = time.perf_counter()
+    robot.connect()
+    try:
+        assert time.perf_counter() - start > 0.3 / 0.5 * 0.9  # at the homing speed, not in one jump
+        assert controller.state()["servo_target"] == pytest.approx(Q, abs=1e-6)
+    finally:
+        robot.disconnect()

@@ -92,6 +92,10 @@ class UR3eConfig(RobotConfig):
     # Calibration: added to the measured joints to give the policy's joints (and subtracted from
     # commands), e.g. when the arm's base is mounted turned against the frame the policy learned in.
     joint_offsets: list[float] = field(default_factory=lambda: [0.0] * 6)
+    # Move to the home pose (`lerobot-calibrate` stores it; default: the simulation's) at 0.5 rad/s after
+    # connecting, so that episodes start where demonstrations did (lerobot-rollout returns to the pose it
+    # found at start-up between episodes).
+    move_home_on_connect: bool = False
 
     # Safety, always on. Joint limits (rad); largest change of a joint target per control period (rad);
     # joint speed limits (rad/s) applied at the servo rate; the box (m, base frame) the tool centre must

@@ -15,6 +15,7 @@ import mujoco
 import numpy as np
 
 from lerobot_condground.envs import robot as sim_robot
+from lerobot_condground.envs.scene import PHYSICS_DT
 
 from .servo_loop import ServoLoop
 
@@ -63,8 +64,9 @@ class TwinBackend:
 
 
 class SimArm:
-    def __init__(self, config):
+    def __init__(self, config, home):
         self.config = config
+        self.home = np.asarray(home, dtype=float) - np.asarray(config.joint_offsets)  # the arm's own frame
         self.env = None
         self.loop: ServoLoop | None = None
         self.scene = -1  # scene counter: 0 for the first layout after connect
@@ -101,8 +103,12 @@ class SimArm:
         with self.lock:
             self.scene += 1
             self.env.reset(seed=self.config.sim.seed + self.scene)
+            if not np.allclose(self.home, sim_robot.HOME_QPOS):  # a calibrated home pose: scenes start there
+                self.env.data.qpos[self.env._arm_qadr] = self.home
+                self.env.data.ctrl[:6] = self.home
+                mujoco.mj_forward(self.env.model, self.env.data)
             self.loop = ServoLoop(
-                self.backend, control_period=1 / self.config.control_hz, servo_period=sim_robot_dt(),
+                self.backend, control_period=1 / self.config.control_hz, servo_period=PHYSICS_DT,
                 max_joint_velocity=np.array(self.config.max_joint_velocity), joint_min=np.array(self.config.joint_min),
                 joint_max=np.array(self.config.joint_max), stall_periods=self.config.stall_periods,
             )
@@ -117,7 +123,7 @@ class SimArm:
     def _step(self) -> None:
         self.loop.tick(self.clock)
         mujoco.mj_step(self.env.model, self.env.data)
-        self.clock += sim_robot_dt()
+        self.clock += PHYSICS_DT
         self._ticks += 1
         if self._ticks % TRACKER_EVERY == 0:  # stage flags (grasp, place) at 100 Hz are plenty
             self.env.tracker.update(self.env.data)
@@ -129,7 +135,7 @@ class SimArm:
                 with self.lock:
                     behind = (time.perf_counter() - start) - self.clock
                     # Catch up in bounded bursts so rendering and commands still get the lock.
-                    for _ in range(min(int(behind / sim_robot_dt()), 50)):
+                    for _ in range(min(int(behind / PHYSICS_DT), 50)):
                         self._step()
                 time.sleep(0.001)
         except BaseException as exc:  # surfaced by the next call from the robot
@@ -152,7 +158,7 @@ class SimArm:
             self.loop.command(q, gripper, self.clock)
             self._dirty = True
             if not self.config.sim.realtime:
-                for _ in range(round(1 / (self.config.control_hz * sim_robot_dt()))):
+                for _ in range(round(1 / (self.config.control_hz * PHYSICS_DT))):
                     self._step()
 
     def freedrive(self, on: bool) -> None:
@@ -177,8 +183,3 @@ class SimArm:
                 self.env.close()
             self.env = None
 
-
-def sim_robot_dt() -> float:
-    from lerobot_condground.envs.scene import PHYSICS_DT
-
-    return PHYSICS_DT

@@ -9,6 +9,7 @@ after an exception or Ctrl-C.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 from functools import cached_property
@@ -26,6 +27,8 @@ from .safety import SafetyLimits
 logger = logging.getLogger(__name__)
 
 PROMPT_KEYS = ("prompt_object", "prompt_receptacle")
+PROMPT_SIZE = 64  # the simulation's prompt crop side (envs.pickplace_env.PROMPT_SIZE)
+HOMING_SPEED = 0.5  # rad/s of the fastest joint while moving home
 _CONNECTED: list[UR3e] = []
 
 
@@ -39,7 +42,6 @@ def connected_ur3e(host: str | None = None) -> UR3e:
             "of exactly one connected --robot.type=ur3e (set --teleop.host when there are several)"
         )
     return robots[0]
-PROMPT_SIZE = 64
 
 
 class UR3e(Robot):
@@ -120,7 +122,7 @@ class UR3e(Robot):
         if self.config.backend == "sim":
             from .sim_arm import SimArm
 
-            arm = SimArm(self.config)
+            arm = SimArm(self.config, self.home)
         else:
             from .rtde_arm import RTDEArm
 
@@ -138,11 +140,37 @@ class UR3e(Robot):
                         "`lerobot-find-cameras` lists the cameras this machine sees."
                     ) from exc
             self._start_prompts()
+            self._target = None
+            _CONNECTED.append(self)
+            if self.config.move_home_on_connect:
+                self.move_to(self.home)
         except BaseException:
             self.disconnect()
             raise
-        self._target = None
-        _CONNECTED.append(self)
+
+    def move_to(self, q, speed: float = HOMING_SPEED, tolerance: float = 0.01, settle_s: float = 3.0) -> None:
+        """Moves the joints to `q` (policy frame) along a straight joint-space line at `speed`, through the
+        same safety layer as every action, and holds the target until the arm is there; the gripper keeps
+        its state."""
+        import time
+
+        state = self.arm.state()
+        start, gripper = state.q + self.offsets, state.gripper
+        q = np.asarray(q, dtype=float)
+        steps = max(1, int(np.ceil(np.abs(q - start).max() / speed * self.config.control_hz)))
+        deadline = None
+        for k in itertools.count(1):
+            t0 = time.perf_counter()
+            self.send_action(dict(zip(MOTOR_NAMES, [*(start + (q - start) * min(k / steps, 1.0)), gripper], strict=True)))
+            if k >= steps:
+                deadline = deadline or t0 + settle_s
+                error = np.abs(self.arm.state().q + self.offsets - q).max()
+                if error < tolerance:
+                    return
+                if t0 > deadline:
+                    raise RuntimeError(f"The arm did not reach {np.round(q, 3).tolist()} within {settle_s} s "
+                                       f"(still {error:.3f} rad away); is something in its way?")
+            time.sleep(max(0.0, 1 / self.config.control_hz - (time.perf_counter() - t0)))
 
     def disconnect(self) -> None:
         try:
