@@ -86,7 +86,11 @@ class _UR3eTeleop(Teleoperator):
 
         if self.robot is None or not self.robot.is_connected:
             self.robot = connected_ur3e(getattr(self.config, "host", None))
-            self._attached()
+            try:
+                self._attached()
+            except BaseException:
+                self.robot = None  # refused: every later call reports it again
+                raise
         return self.robot
 
     def _attached(self) -> None:
