@@ -330,3 +330,16 @@ def test_lerobot_calibrate_stores_the_home_pose(controller, tmp_path):
         assert controller.state()["servo_target"] == pytest.approx(Q, abs=1e-6)
     finally:
         robot.disconnect()
+
+
+def test_expert_teleop_refuses_the_real_arm(fake):
+    from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eExpertConfig
+    from lerobot_condground.teleoperators.ur3e_teleops import UR3eExpert
+
+    teleop = UR3eExpert(UR3eExpertConfig())
+    teleop.connect()
+    with robot_for(fake.host, gripper="none") as robot:
+        for _ in range(2):
+            with pytest.raises(ValueError, match="use it with --robot.backend=sim"):
+                teleop.get_action()
+        assert robot.is_connected
