@@ -258,7 +258,14 @@ class RTDEArm:
                     f"The UR at {cfg.host} did not finish connecting within {cfg.connect_timeout_s} s "
                     "(ur_rtde has no timeout of its own; --robot.connect_timeout_s sets this one)"
                 )
-        kind, message = self.conn.recv()
+        try:
+            kind, message = self.conn.recv()
+        except EOFError:
+            self._kill()
+            raise ConnectionError(
+                "The ur3e worker process exited before connecting. In a script of your own, start the robot under "
+                "`if __name__ == \"__main__\":`: the worker is spawned, and spawning re-runs the main module."
+            ) from None
         if kind != "ready":
             self._kill()
             raise ConnectionError(message)
