@@ -308,3 +308,21 @@ def test_live_prompt_cameras_track_the_clicked_entities():
     with pytest.raises(ValueError, match="500"):
         bad.connect()
     assert not bad.is_connected and sim_arm._CONNECTED == []
+
+
+def test_live_prompt_cameras_with_sam2_loaded_from_a_local_checkpoint(tmp_path):
+    """The SAM 2 path of the prompt cameras, with a small random-weight model saved like a download: it
+    loads the real way and yields the episode's two crops (what they show is meaningless)."""
+    from lerobot_condground.robots.config_ur3e import UR3ePromptsConfig
+    from lerobot_condground.segmenters import save_random_sam2
+
+    model = save_random_sam2(tmp_path / "sam2", size="small")
+    robot = twin(prompts=UR3ePromptsConfig(segmenter="sam2", sam2_model_id=str(model), object="64,48",
+                                           receptacle="20,30,50,60"))
+    with robot:
+        first = robot.get_observation()
+        robot.send_action(action(HOME_QPOS))
+        again = robot.get_observation()
+    for key in ("prompt_object", "prompt_receptacle"):
+        assert first[key].shape == (64, 64, 3) and first[key].dtype == np.uint8
+        np.testing.assert_array_equal(first[key], again[key])
