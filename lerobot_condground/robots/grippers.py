@@ -91,7 +91,6 @@ class DigitalOutputGripper:
             raise ValueError(f"gripper_output={output}; a UR3e tool has digital outputs 0 and 1")
         self.host, self.output = host, output
         self.io = None
-        self._closed = 0.0
 
     def connect(self) -> None:
         import rtde_io
@@ -99,9 +98,7 @@ class DigitalOutputGripper:
         self.io = rtde_io.RTDEIOInterface(self.host)
 
     def command(self, closure: float) -> None:
-        closed = closure > 0.5
-        self.io.setToolDigitalOut(self.output, closed)
-        self._closed = float(closed)
+        self.io.setToolDigitalOut(self.output, closure > 0.5)
 
     def closure_from_bits(self, digital_output_bits: int) -> float:
         # Tool outputs are bits 16 and 17 of RTDE's actual_digital_output_bits.

@@ -28,9 +28,9 @@ from .servo_loop import ArmState, ServoLoop
 logger = logging.getLogger(__name__)
 
 DASHBOARD_PORT, RTDE_PORT = 29999, 30004
-_STATE_SIZE = 6 + 6 + 6
+_STATE_SIZE = 6 + 6 + 6  # q, qd, gripper, safety_mode, streaming, freedrive, stalls, time
 _SCRIPT_STOPPED = ("The UR control script stopped (a stop on the pendant, a safety stop, or another program); the "
-                   "arm no longer follows commands. Check the pendant, then reconnect.")  # q, qd, gripper, safety_mode, streaming, freedrive, stalls, time
+                   "arm no longer follows commands. Check the pendant, then reconnect.")
 
 
 def probe(host: str, port: int, timeout: float) -> None:

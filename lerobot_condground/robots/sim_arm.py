@@ -24,6 +24,7 @@ logger = logging.getLogger(__name__)
 _CONNECTED: list[SimArm] = []
 TRACKER_EVERY = 5
 
+
 def active_twin() -> SimArm:
     """The connected twin of this process (cameras and the expert teleoperator attach to it)."""
     if len(_CONNECTED) != 1:

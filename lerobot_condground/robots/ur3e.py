@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import time
 from functools import cached_property
 
 import numpy as np
@@ -152,8 +153,6 @@ class UR3e(Robot):
         """Moves the joints to `q` (policy frame) along a straight joint-space line at `speed`, through the
         same safety layer as every action, and holds the target until the arm is there; the gripper keeps
         its state."""
-        import time
-
         state = self.arm.state()
         start, gripper = state.q + self.offsets, state.gripper
         q = np.asarray(q, dtype=float)
