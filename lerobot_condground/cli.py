@@ -37,7 +37,7 @@ COMMANDS = {
 
 def _usage() -> str:
     lines = ["usage: condground <command> [--group.key=value ...]", "", "commands:"]
-    lines += [f"  {name:<11} {text}" for name, text in COMMANDS.items()]
+    lines += [f"  {name:<13} {text}" for name, text in COMMANDS.items()]
     lines += ["", "`condground <command> --help` lists the flags of a command."]
     return "\n".join(lines)
 
@@ -72,33 +72,30 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad input: one line, no traceback
             print(f"condground augment: {err}", file=sys.stderr)
             return 2
-    elif command in ("prompts", "prompts-bench"):
-        from lerobot_condground import prompts
-
-        try:
-            if command == "prompts":
-                cfg = draccus.parse(prompts.PromptsConfig, args=args, prog="condground prompts")
-                print(prompts.format_summary(prompts.label_dataset(cfg)))
-            else:
-                args = ["--json=true" if a == "--json" else a for a in args]
-                prompts.run_bench(draccus.parse(prompts.PromptsBenchConfig, args=args, prog="condground prompts-bench"))
-        except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad input: one line, no traceback
-            print(f"condground {command}: {err}", file=sys.stderr)
-            return 2
     elif command == "quickstart":
         from lerobot_condground.quickstart import QuickstartConfig, run_quickstart
 
         cfg = draccus.parse(QuickstartConfig, args=args, prog="condground quickstart")
         run_quickstart(cfg)
     else:
-        return _diagnosis_command(command, args)
+        return _checked_command(command, args)
     return 0
 
 
-def _diagnosis_command(command: str, args: list[str]) -> int:
-    """The diagnosis commands: bad input (grid, checkpoint, results directory) is one line, no traceback."""
+def _checked_command(command: str, args: list[str]) -> int:
+    """The diagnosis and prompt commands: bad input (grid, checkpoint, results directory, dataset, click)
+    is one line, no traceback."""
     try:
-        if command == "sweep":
+        if command == "prompts":
+            from lerobot_condground.prompts import PromptsConfig, format_summary, label_dataset
+
+            print(format_summary(label_dataset(draccus.parse(PromptsConfig, args=args, prog="condground prompts"))))
+        elif command == "prompts-bench":
+            from lerobot_condground.prompts import PromptsBenchConfig, run_bench
+
+            args = ["--json=true" if a == "--json" else a for a in args]
+            run_bench(draccus.parse(PromptsBenchConfig, args=args, prog="condground prompts-bench"))
+        elif command == "sweep":
             from lerobot_condground.sweep import SweepConfig, run_sweep
 
             run_sweep(draccus.parse(SweepConfig, args=args, prog="condground sweep"))
@@ -119,7 +116,7 @@ def _diagnosis_command(command: str, args: list[str]) -> int:
 
             html, markdown = build_report(parse_report_args(args))
             print(f"report: {html} and {markdown}")
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"condground {command}: {err}", file=sys.stderr)
         return 2
     return 0

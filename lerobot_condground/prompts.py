@@ -40,7 +40,7 @@ from lerobot_condground.labels import (
     PNG_FEATURE,
     encode_png,
 )
-from lerobot_condground.segmenters import DEFAULT_SAM2_MODEL, SEGMENTERS, Prompt, make_segmenter
+from lerobot_condground.segmenters import SEGMENTERS, ColorConfig, Prompt, Sam2Config, make_segmenter
 
 logger = logging.getLogger(__name__)
 
@@ -61,32 +61,6 @@ class PromptsOutputConfig:
     repo_id: str | None = None
     # Must not exist yet. Default: <dataset root>_prompts.
     root: str | None = None
-
-
-@dataclass
-class Sam2Config:
-    # Hub id (from the local Hugging Face cache when offline) or a directory written by save_pretrained.
-    model_id: str = DEFAULT_SAM2_MODEL
-    device: str = "cpu"
-    # float32, bfloat16 or float16 (the last two for GPUs).
-    dtype: str = "float32"
-    # Mask logit threshold.
-    mask_threshold: float = 0.0
-
-
-@dataclass
-class ColorConfig:
-    """`ColorSegmenter`'s parameters (lerobot_condground/segmenters.py), same defaults."""
-
-    hue_tol: float = 3.0
-    sat_ratio: float = 0.35
-    value_ratio: float = 0.25
-    min_saturation: float = 60.0
-    rgb_tol: float = 40.0
-    snap_px: int = 5
-    max_jump: float = 0.25
-    min_area_ratio: float = 0.05
-    fill_holes: bool = True
 
 
 @dataclass
@@ -250,14 +224,6 @@ def _to_uint8_hwc(image) -> np.ndarray:
     return image.permute(1, 2, 0).numpy() if image.shape[0] == 3 else image.numpy()
 
 
-def _segmenter(cfg: PromptsConfig):
-    if cfg.segmenter == "sam2":
-        return make_segmenter("sam2", **asdict(cfg.sam2))
-    if cfg.segmenter == "color":
-        return make_segmenter("color", **asdict(cfg.color))
-    return make_segmenter(cfg.segmenter)  # the unknown-name error lists the allowed ones
-
-
 def label_dataset(cfg: PromptsConfig) -> dict:
     """Writes the labelled copy; returns counts for the summary."""
     from lerobot.datasets.dataset_tools import add_features, delete_episodes
@@ -291,7 +257,8 @@ def label_dataset(cfg: PromptsConfig) -> dict:
     height, width = meta.features[cfg.camera]["shape"][:2]
     episodes = _parse_episodes(cfg.episodes, meta.total_episodes)
     prompts = _episode_prompts(cfg, episodes, height, width, chosen=bool(cfg.episodes))
-    segmenter = _segmenter(cfg)  # loads SAM 2 (or fails to) only after every input was checked
+    # SAM 2 is loaded (or fails to) only after every input was checked.
+    segmenter = make_segmenter(cfg.segmenter, **asdict(cfg.sam2 if cfg.segmenter == "sam2" else cfg.color))
     tracker = PromptTracker(segmenter)
 
     segmentation, crops_object, crops_receptacle, phases = [], [], [], []
@@ -404,12 +371,14 @@ def _sim_frames(height: int, width: int, n: int, seed: int = 5):
             obs, _ = env.reset(seed=seed)
             expert.reset(env)
     env.close()
-    clicks = []
-    for label in (1, 2):
-        ys, xs = np.nonzero(first_seg == label)
-        k = int(((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2).argmin())
-        clicks.append(f"{xs[k]},{ys[k]}")
-    return frames, clicks
+    return frames, [click_on(first_seg, label) for label in (1, 2)]
+
+
+def click_on(labels: np.ndarray, label: int) -> str:
+    """The click a user would give an entity of a label map: its pixel nearest the entity's centroid."""
+    ys, xs = np.nonzero(labels == label)
+    k = int(((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2).argmin())
+    return f"{xs[k]},{ys[k]}"
 
 
 def time_tracking(segmenter, frames, object_prompt, receptacle_prompt, warmup: int = 2) -> dict:

@@ -22,7 +22,7 @@ import math
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -177,6 +177,17 @@ def _looks_like_path(model_id: str) -> bool:
     return model_id.startswith((".", "/", "~")) or model_id.count("/") > 1 or Path(model_id).expanduser().exists()
 
 
+@dataclass
+class Sam2Config:
+    # Hub id (from the local Hugging Face cache when offline) or a directory written by save_pretrained.
+    model_id: str = DEFAULT_SAM2_MODEL
+    device: str = "cpu"
+    # float32, bfloat16 or float16 (the last two for GPUs).
+    dtype: str = "float32"
+    # Mask logit threshold.
+    mask_threshold: float = 0.0
+
+
 class Sam2Segmenter(Segmenter):
     """SAM 2 video segmentation (transformers' `Sam2VideoModel` + `Sam2VideoProcessor`), streamed one
     frame at a time: the prompts condition the first frame, SAM 2's memory bank carries the objects on.
@@ -184,15 +195,15 @@ class Sam2Segmenter(Segmenter):
     `model_id`: a Hugging Face hub id (weights from the local cache when offline) or a local directory
     written by `save_pretrained` (config.json, model.safetensors, processor files)."""
 
-    def __init__(self, model_id: str = DEFAULT_SAM2_MODEL, device: str = "cpu", dtype="float32",
-                 mask_threshold: float = 0.0):
+    def __init__(self, config: Sam2Config | None = None, **overrides):
         super().__init__()
         import torch
 
-        self.model_id = str(model_id)
-        self.device = torch.device(device)
-        self.dtype = _torch_dtype(dtype)
-        self.mask_threshold = mask_threshold
+        config = replace(config or Sam2Config(), **overrides)
+        self.model_id = str(config.model_id)
+        self.device = torch.device(config.device)
+        self.dtype = _torch_dtype(config.dtype)
+        self.mask_threshold = config.mask_threshold
         self.model, self.processor = self._load()
         self._session = None
         self._frame_idx = -1
@@ -286,6 +297,21 @@ class _ColorTrack:
     min_area: int
 
 
+@dataclass
+class ColorConfig:
+    """`ColorSegmenter`'s thresholds (its docstring says what each does)."""
+
+    hue_tol: float = 3.0
+    sat_ratio: float = 0.35
+    value_ratio: float = 0.25
+    min_saturation: float = 60.0
+    rgb_tol: float = 40.0
+    snap_px: int = 5
+    max_jump: float = 0.25
+    min_area_ratio: float = 0.05
+    fill_holes: bool = True
+
+
 class ColorSegmenter(Segmenter):
     """Color-threshold segmentation and tracking.
 
@@ -304,14 +330,9 @@ class ColorSegmenter(Segmenter):
     4 hue units from the blue receptacle; real cameras (lighting, white balance) need 8-12.
     """
 
-    def __init__(self, hue_tol: float = 3.0, sat_ratio: float = 0.35, value_ratio: float = 0.25,
-                 min_saturation: float = 60.0, rgb_tol: float = 40.0, snap_px: int = 5, max_jump: float = 0.25,
-                 min_area_ratio: float = 0.05, fill_holes: bool = True):
+    def __init__(self, config: ColorConfig | None = None, **overrides):
         super().__init__()
-        self.hue_tol, self.sat_ratio, self.value_ratio = hue_tol, sat_ratio, value_ratio
-        self.min_saturation, self.rgb_tol = min_saturation, rgb_tol
-        self.snap_px, self.max_jump, self.min_area_ratio = snap_px, max_jump, min_area_ratio
-        self.fill_holes = fill_holes
+        self.config = replace(config or ColorConfig(), **overrides)
         self._tracks: dict[int, _ColorTrack] = {}
 
     # -- colors
@@ -325,7 +346,7 @@ class ColorSegmenter(Segmenter):
         y0, y1, x0, x1 = max(y - 1, 0), y + 2, max(x - 1, 0), x + 2
         ref_hsv = np.median(hsv[y0:y1, x0:x1].reshape(-1, 3), axis=0)
         # Hue is meaningless for grays and near-blacks: those are matched by RGB distance.
-        use_hue = ref_hsv[1] >= self.min_saturation and ref_hsv[2] >= self.min_saturation
+        use_hue = ref_hsv[1] >= self.config.min_saturation and ref_hsv[2] >= self.config.min_saturation
         if use_hue:
             # The median of a hue window that straddles red's wrap-around (0/180) is wrong: take the
             # clicked pixel's own hue then.
@@ -338,17 +359,17 @@ class ColorSegmenter(Segmenter):
             h = hsv[..., 0].astype(np.int16)
             dh = np.abs(h - int(round(track_ref[0])))
             dh = np.minimum(dh, 180 - dh)
-            return ((dh <= self.hue_tol) & (hsv[..., 1] >= self.sat_ratio * track_ref[1])
-                    & (hsv[..., 2] >= self.value_ratio * track_ref[2]))
+            return ((dh <= self.config.hue_tol) & (hsv[..., 1] >= self.config.sat_ratio * track_ref[1])
+                    & (hsv[..., 2] >= self.config.value_ratio * track_ref[2]))
         diff = frame.astype(np.float32) - track_ref.astype(np.float32)
-        return np.sqrt((diff * diff).sum(-1)) <= self.rgb_tol
+        return np.sqrt((diff * diff).sum(-1)) <= self.config.rgb_tol
 
     # -- components
     def _component_mask(self, labels: np.ndarray, index: int) -> np.ndarray:
         import cv2
 
         mask = labels == index
-        if self.fill_holes:
+        if self.config.fill_holes:
             contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
             filled = np.zeros(mask.shape, np.uint8)
             cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
@@ -381,7 +402,7 @@ class ColorSegmenter(Segmenter):
                 if len(ys):
                     d2 = (xs - x) ** 2 + (ys - y) ** 2
                     nearest = int(d2.argmin())
-                    if d2[nearest] <= self.snap_px**2:
+                    if d2[nearest] <= self.config.snap_px**2:
                         index = int(labels[ys[nearest], xs[nearest]])
             if index == 0:
                 logger.warning("Prompt %s of object %d matches no region of its color; its mask starts empty",
@@ -391,7 +412,7 @@ class ColorSegmenter(Segmenter):
             else:
                 mask = self._component_mask(labels, index)
                 centroid, area = tuple(centroids[index]), int(stats[index, cv2.CC_STAT_AREA])
-            self._tracks[obj_id] = _ColorTrack(ref, use_hue, centroid, max(1, int(self.min_area_ratio * area)))
+            self._tracks[obj_id] = _ColorTrack(ref, use_hue, centroid, max(1, int(self.config.min_area_ratio * area)))
             masks[obj_id] = mask
         return masks
 
@@ -399,7 +420,7 @@ class ColorSegmenter(Segmenter):
         import cv2
 
         hsv = self._hsv(frame)
-        max_jump = self.max_jump * math.hypot(*frame.shape[:2])
+        max_jump = self.config.max_jump * math.hypot(*frame.shape[:2])
         masks = {}
         for obj_id, track in self._tracks.items():
             band = self._band(frame, hsv, track.reference, track.use_hue)
@@ -475,7 +496,7 @@ def save_random_sam2(path, size: str = "small", seed: int = 0) -> Path:
 
 
 def make_segmenter(name: str, **kwargs) -> Segmenter:
-    """`name`: "sam2" (kwargs of `Sam2Segmenter`) or "color" (kwargs of `ColorSegmenter`)."""
+    """`name`: "sam2" (fields of `Sam2Config`) or "color" (fields of `ColorConfig`)."""
     if name == "sam2":
         return Sam2Segmenter(**kwargs)
     if name == "color":

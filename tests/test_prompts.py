@@ -20,7 +20,7 @@ from lerobot_condground.labels import (
     decode_png,
 )
 from lerobot_condground.prompt_tracker import PromptTracker, labels_from_masks
-from lerobot_condground.prompts import PROMPTS_FILE, phase_from_gripper
+from lerobot_condground.prompts import PROMPTS_FILE, click_on, phase_from_gripper
 from lerobot_condground.segmenters import (
     ColorSegmenter,
     Prompt,
@@ -29,13 +29,6 @@ from lerobot_condground.segmenters import (
     parse_prompt,
     save_random_sam2,
 )
-
-
-def center_click(segmentation: np.ndarray, label: int) -> str:
-    """A pixel of the entity's privileged mask, the one nearest its centroid: what a user would click."""
-    ys, xs = np.nonzero(segmentation == label)
-    k = int(((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2).argmin())
-    return f"{xs[k]},{ys[k]}"
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -98,7 +91,7 @@ def test_color_tracker_matches_the_privileged_labels_and_crops():
     for step in range(200):
         frame, seg = obs["pixels"]["top"], obs["segmentation"]
         if step == 0:
-            result = tracker.start(frame, center_click(seg, 1), center_click(seg, 2))
+            result = tracker.start(frame, click_on(seg, 1), click_on(seg, 2))
             assert result.object_crop.shape == result.receptacle_crop.shape == (64, 64, 3)
             np.testing.assert_allclose(result.object_crop, obs["prompt_object"], atol=2)
             np.testing.assert_allclose(result.receptacle_crop, obs["prompt_receptacle"], atol=2)
@@ -163,7 +156,7 @@ def test_sam2_streams_masks_and_crops_from_a_saved_checkpoint(random_sam2):
     for step in range(4):
         frame = obs["pixels"]["top"]
         if step == 0:
-            result = tracker.start(frame, center_click(seg, 1), "5,5,60,60", competitor_prompts=["100,80"])
+            result = tracker.start(frame, click_on(seg, 1), "5,5,60,60", competitor_prompts=["100,80"])
         else:
             result = tracker.track(frame)
         assert sorted(result.masks) == [1, 2, 3]
@@ -204,8 +197,8 @@ def hardware_like_dataset(tmp_path_factory):
     clicks = {}
     for episode, seed in enumerate(seeds):
         obs, _ = env.reset(seed=seed)
-        clicks[episode] = {"object": center_click(obs["segmentation"], 1),
-                           "receptacle": center_click(obs["segmentation"], 2)}
+        clicks[episode] = {"object": click_on(obs["segmentation"], 1),
+                           "receptacle": click_on(obs["segmentation"], 2)}
     env.close()
     return root, seeds, clicks
 

@@ -1,11 +1,11 @@
 """The hardware path of the `ur3e` robot against a loopback fake UR controller (RTDE, dashboard, Robotiq
-URCap socket) running as its own process: real ur_rtde clients, our worker process, real sockets.
+URCap socket, script ports) running as its own process: real ur_rtde clients, our worker process, real
+sockets. The receive path runs with `--robot.dry_run=true` (read everything, command nothing); the control
+path (servoJ, servoStop, teachMode) runs against the fake's emulation of ur_rtde's control script."""
 
-The control script (servoJ, teachMode) cannot run without a controller, so these tests use
-`--robot.dry_run=true` (read everything, command nothing) for the receive path; the control path runs
-through the same ServoLoop and safety layer, tested on the twin (test_ur3e_twin)."""
-
+import json
 import os
+import pty
 import signal
 import subprocess
 import sys
@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import BIN
 from ur_fake import free_loopback_host, start_fake_controller
 
 from lerobot_condground.envs.robot import MOTOR_NAMES
@@ -22,6 +23,8 @@ from lerobot_condground.robots.config_ur3e import UR3eConfig
 from lerobot_condground.robots.grippers import DigitalOutputGripper, RobotiqSocketGripper
 from lerobot_condground.robots.safety import ArmFault
 from lerobot_condground.robots.ur3e import UR3e
+from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eExpertConfig
+from lerobot_condground.teleoperators.ur3e_teleops import UR3eExpert
 
 Q = [0.1, -1.6, 1.5, -1.4, -1.57, 0.3]
 
@@ -281,8 +284,6 @@ teleop.disconnect()
 def test_freedrive_teleop_records_the_hand_guided_joints(controller):
     """Teach mode through the real control interface; the joints a hand puts the arm in are the actions, and
     a key (typed into a pseudo-terminal) toggles the gripper."""
-    import pty
-
     master, slave = pty.openpty()
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     proc = subprocess.Popen([sys.executable, "-c", FREEDRIVE_SCRIPT, controller.host], stdin=slave,
@@ -307,16 +308,12 @@ def test_freedrive_teleop_records_the_hand_guided_joints(controller):
 
 
 def test_lerobot_calibrate_stores_the_home_pose(controller, tmp_path):
-    from conftest import BIN
-
     proc = subprocess.run(
         [str(BIN / "lerobot-calibrate"), "--robot.type=ur3e", f"--robot.host={controller.host}", "--robot.id=lab",
          f"--robot.calibration_dir={tmp_path}", "--robot.gripper=none"],
         input="\n", capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    import json
-
     assert json.loads((tmp_path / "lab.json").read_text())["home"] == pytest.approx(Q)
     # The calibrated arm, found elsewhere, goes home on connect through the safety layer.
     controller.set(actual_q=[Q[0] + 0.3, *Q[1:]])
@@ -333,9 +330,6 @@ def test_lerobot_calibrate_stores_the_home_pose(controller, tmp_path):
 
 
 def test_expert_teleop_refuses_the_real_arm(fake):
-    from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eExpertConfig
-    from lerobot_condground.teleoperators.ur3e_teleops import UR3eExpert
-
     teleop = UR3eExpert(UR3eExpertConfig())
     teleop.connect()
     with robot_for(fake.host, gripper="none") as robot:

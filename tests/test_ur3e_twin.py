@@ -20,6 +20,7 @@ from lerobot_condground.cameras.config_ur3e_twin import UR3eTwinCameraConfig
 from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 from lerobot_condground.envs.robot import HOME_QPOS, MOTOR_NAMES
 from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_SEGMENTATION, decode_png
+from lerobot_condground.prompts import click_on
 from lerobot_condground.robots import kinematics, sim_arm
 from lerobot_condground.robots.config_ur3e import UR3eConfig, UR3ePromptsConfig, UR3eSimConfig
 from lerobot_condground.robots.ur3e import UR3e
@@ -84,7 +85,7 @@ def test_lerobot_record_with_expert_teleop_on_the_twin(tmp_path):
     clicks, truth = {}, []
     for episode in range(2):  # the twin lays out scene k (seed k) for episode k
         truth.append(env.reset(seed=episode)[0]["segmentation"])
-        clicks[str(episode)] = {"object": _click(truth[-1], 1), "receptacle": _click(truth[-1], 2)}
+        clicks[str(episode)] = {"object": click_on(truth[-1], 1), "receptacle": click_on(truth[-1], 2)}
     env.close()
     (tmp_path / "clicks.json").write_text(json.dumps(clicks))
     run_cli("condground", "prompts", "--dataset.repo_id=local/ur3e_demo", f"--dataset.root={root}", "--segmenter=color",
@@ -253,9 +254,8 @@ KEYBOARD_SCRIPT = """
 import time
 import numpy as np
 from lerobot_condground.robots import kinematics
-from lerobot_condground.robots.config_ur3e import UR3eConfig, UR3ePromptsConfig, UR3eSimConfig
+from lerobot_condground.robots.config_ur3e import UR3eConfig, UR3eSimConfig
 from lerobot_condground.robots.ur3e import UR3e
-from lerobot_condground.segmenters import save_random_sam2
 from lerobot_condground.teleoperators.config_ur3e_teleops import UR3eKeyboardConfig
 from lerobot_condground.teleoperators.ur3e_teleops import UR3eKeyboard
 robot = UR3e(UR3eConfig(backend="sim", sim=UR3eSimConfig(realtime=False)))
@@ -300,19 +300,13 @@ def test_keyboard_teleop_jogs_the_tool_with_ik():
     assert gripper == 1.0
 
 
-def _click(labels, label) -> str:
-    ys, xs = np.nonzero(labels == label)
-    i = np.argmin((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2)  # the entity's pixel nearest its centroid
-    return f"{xs[i]},{ys[i]}"
-
-
 def test_live_prompt_cameras_track_the_clicked_entities():
     """--robot.prompts.segmenter=color: two clicks on the first frame give the prompt cameras, re-annotated
     at every recorded episode; they show what the twin's privileged crops show."""
 
     env = PickPlaceEnv(observation_height=96, observation_width=128, segmentation=True)
     obs, _ = env.reset(seed=0)  # the twin's first scene
-    clicks = {"object": _click(obs["segmentation"], 1), "receptacle": _click(obs["segmentation"], 2)}
+    clicks = {"object": click_on(obs["segmentation"], 1), "receptacle": click_on(obs["segmentation"], 2)}
     env.close()
     robot = twin(prompts=UR3ePromptsConfig(segmenter="color", **clicks))
     assert robot.observation_features["prompt_object"] == (64, 64, 3)

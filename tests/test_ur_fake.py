@@ -17,8 +17,6 @@ import pytest
 
 from ur_fake import FakeControllerError, forward_kinematics, free_loopback_host, start_fake_controller
 
-pytest.importorskip("rtde_receive")
-
 # Shared by the client scripts: one side-channel request from inside the client process, so a state
 # change and the client's view of it are timed on one clock.
 CLIENT_PRELUDE = textwrap.dedent("""

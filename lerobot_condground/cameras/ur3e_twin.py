@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 from lerobot.cameras import Camera
 
-from .config_ur3e_twin import UR3eTwinCameraConfig
+from .config_ur3e_twin import TWIN_CAMERAS, UR3eTwinCameraConfig
 
 
 class UR3eTwinCamera(Camera):
@@ -28,7 +28,7 @@ class UR3eTwinCamera(Camera):
     def find_cameras() -> list[dict]:
         from lerobot_condground.robots.sim_arm import _CONNECTED
 
-        return [{"name": cam, "type": "ur3e_twin"} for _ in _CONNECTED[:1] for cam in ("top", "wrist")]
+        return [{"name": cam, "type": "ur3e_twin"} for cam in TWIN_CAMERAS] if _CONNECTED else []
 
     def connect(self, warmup: bool = True) -> None:
         from lerobot_condground.robots.sim_arm import active_twin

@@ -16,9 +16,11 @@ from dataclasses import dataclass, field
 from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
 
+from lerobot_condground.segmenters import DEFAULT_SAM2_MODEL, SEGMENTERS
+
 BACKENDS = ("rtde", "sim")
 GRIPPERS = ("robotiq", "digital_output", "none")
-SEGMENTERS = ("privileged", "color", "sam2")
+PROMPT_SEGMENTERS = ("privileged", *SEGMENTERS)  # privileged: the twin's exact crops
 
 
 @dataclass
@@ -50,7 +52,7 @@ class UR3ePromptsConfig:
     object: str | None = None
     receptacle: str | None = None
     interactive: bool = False
-    sam2_model_id: str = "facebook/sam2.1-hiera-tiny"
+    sam2_model_id: str = DEFAULT_SAM2_MODEL
     device: str = "cpu"
 
 
@@ -150,11 +152,11 @@ class UR3eConfig(RobotConfig):
             problems.append(f"servoj_gain={self.servoj_gain}; allowed: 100..2000 (UR's range)")
         if self.stall_periods < 1:
             problems.append(f"stall_periods={self.stall_periods}; allowed: >= 1")
-        if self.prompts.segmenter not in (None, *SEGMENTERS):
-            problems.append(f"prompts.segmenter={self.prompts.segmenter!r}; allowed: {', '.join(SEGMENTERS)} (or unset)")
+        if self.prompts.segmenter not in (None, *PROMPT_SEGMENTERS):
+            problems.append(f"prompts.segmenter={self.prompts.segmenter!r}; allowed: {', '.join(PROMPT_SEGMENTERS)} (or unset)")
         elif self.prompts.segmenter == "privileged" and self.backend != "sim":
             problems.append("prompts.segmenter=privileged reads the twin's ground truth; it needs backend=sim")
-        elif self.prompts.segmenter in ("color", "sam2"):
+        elif self.prompts.segmenter in SEGMENTERS:
             if self.prompts.camera not in self.cameras:
                 problems.append(f"prompts.camera={self.prompts.camera!r} is not a camera of this robot; cameras: {', '.join(self.cameras) or 'none'}")
             if not self.prompts.interactive and not (self.prompts.object and self.prompts.receptacle):
