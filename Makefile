@@ -1,6 +1,6 @@
 # Setup is idempotent: each target installs what is missing, then runs.
 #   make quickstart   record demos, train and evaluate a small act_modified, print stage tables
-#   make test         the test suite (default run, no GPU, about 11 minutes on 2 cores)
+#   make test         lint (ruff), then the test suite (default run, no GPU, about 11 minutes on 2 cores)
 SHELL := /bin/bash
 VENV := .venv
 STAMP := $(VENV)/.installed
@@ -12,7 +12,7 @@ export TOKENIZERS_PARALLELISM ?= false
 PYTHON312 := $(shell for p in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
 	$$p -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1 && { echo $$p; break; }; done)
 
-.PHONY: setup system-deps quickstart test test-slow bench
+.PHONY: setup system-deps quickstart lint test test-slow bench
 
 setup: system-deps $(STAMP)
 
@@ -40,7 +40,12 @@ $(STAMP): pyproject.toml
 quickstart: setup
 	$(VENV)/bin/condground quickstart
 
-test: setup
+# Lint first: it takes a second and fails CI on a new violation before the long test run.
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: lint
 	$(VENV)/bin/python -m pytest -q
 
 test-slow: setup

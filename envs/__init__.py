@@ -5,7 +5,7 @@ Registration uses string entry points so that importing the plugin never imports
 
 import gymnasium as gym
 
-from lerobot_condground.conditions import TASKS
+from lerobot_condground.core.conditions import TASKS
 
 GYM_NAMESPACE = "gym_condground"
 

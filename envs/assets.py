@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_condground.conditions import ROLES
+from lerobot_condground.core.conditions import ROLES
 
 COLORS: dict[str, tuple[float, float, float]] = {
     # evaluation palette
@@ -71,7 +71,11 @@ def polygon_vertices(shape: ReceptacleShape) -> list[np.ndarray]:
     verts = []
     for k in range(len(normals)):
         n1, n2 = normals[k], normals[(k + 1) % len(normals)]
-        verts.append(np.linalg.solve(np.stack([n1, n2]), np.array([shape.apothems[k], shape.apothems[(k + 1) % len(normals)]])))
+        verts.append(
+            np.linalg.solve(
+                np.stack([n1, n2]), np.array([shape.apothems[k], shape.apothems[(k + 1) % len(normals)]])
+            )
+        )
     return verts
 
 
@@ -82,7 +86,9 @@ OBJECT_SHAPES: dict[str, ObjectShape] = {
         ObjectShape("cube", footprint=0.029, grasp_width=0.04, grasp_period=math.pi / 2),
         ObjectShape("cylinder", footprint=0.021, grasp_width=0.042, grasp_period=0.0),
         ObjectShape("cross", footprint=0.031, grasp_width=0.06, grasp_period=math.pi / 2),
-        ObjectShape("bar", footprint=0.033, grasp_width=0.026, grasp_period=math.pi, grasp_offset=math.pi / 2),
+        ObjectShape(
+            "bar", footprint=0.033, grasp_width=0.026, grasp_period=math.pi, grasp_offset=math.pi / 2
+        ),
         # augmentation shapes
         ObjectShape("tri_prism", footprint=0.026, grasp_width=0.04, grasp_period=2 * math.pi / 3),
         ObjectShape("hex_prism", footprint=0.024, grasp_width=0.042, grasp_period=math.pi / 3),
@@ -100,7 +106,9 @@ RECEPTACLE_SHAPES: dict[str, ReceptacleShape] = {
         ReceptacleShape("bowl", *_regular(16, 0.056)),
         ReceptacleShape("square_bin", *_regular(4, 0.05)),
         ReceptacleShape("hex_bin", *_regular(6, 0.053, 30.0)),
-        ReceptacleShape("rect_tray", (0.0, 90.0, 180.0, 270.0), (0.072, 0.05, 0.072, 0.05), wall_height=0.028),
+        ReceptacleShape(
+            "rect_tray", (0.0, 90.0, 180.0, 270.0), (0.072, 0.05, 0.072, 0.05), wall_height=0.028
+        ),
         # augmentation shapes
         ReceptacleShape("tri_bin", *_regular(3, 0.05, 90.0)),
         ReceptacleShape("pentagon_bin", *_regular(5, 0.053, 90.0)),

@@ -8,8 +8,8 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
-from lerobot_condground.conditions import ConditionSpec, check_task
-from lerobot_condground.labels import OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE
+from lerobot_condground.core.conditions import ConditionSpec, check_task
+from lerobot_condground.core.labels import OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE
 
 from . import GYM_NAMESPACE
 
@@ -61,7 +61,9 @@ class CondGroundEnvConfig(EnvConfig):
             raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if self.episode_length < 1:
             raise ValueError(f"episode_length={self.episode_length} must be a positive number of steps")
-        image = PolicyFeature(type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3))
+        image = PolicyFeature(
+            type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3)
+        )
         if self.obs_type != "agent_pos":
             self.features["pixels/top"] = image
             if self.wrist_camera:
@@ -74,8 +76,13 @@ class CondGroundEnvConfig(EnvConfig):
         # the names they have in recorded datasets.
         from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep
 
-        rename = {"observation.prompt_object": OBS_PROMPT_OBJECT, "observation.prompt_receptacle": OBS_PROMPT_RECEPTACLE}
-        return PolicyProcessorPipeline(steps=[RenameObservationsProcessorStep(rename_map=rename)]), PolicyProcessorPipeline(steps=[])
+        rename = {
+            "observation.prompt_object": OBS_PROMPT_OBJECT,
+            "observation.prompt_receptacle": OBS_PROMPT_RECEPTACLE,
+        }
+        return PolicyProcessorPipeline(
+            steps=[RenameObservationsProcessorStep(rename_map=rename)]
+        ), PolicyProcessorPipeline(steps=[])
 
     @property
     def package_name(self) -> str:

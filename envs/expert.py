@@ -136,7 +136,9 @@ class ScriptedExpert:
         elif phase == "grasp":
             self._segment(self.tool_pos, self.tool_yaw, 1.0, min_steps=int(0.5 * env.fps))
         elif phase == "lift":
-            self._segment(self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, 1.0, speed=0.2)
+            self._segment(
+                self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, 1.0, speed=0.2
+            )
         elif phase == "transport":
             self._segment(np.array([*rec.xy, CARRY_HEIGHT]), self.tool_yaw, 1.0)
         elif phase == "place":
@@ -145,7 +147,9 @@ class ScriptedExpert:
         elif phase == "release":
             self._segment(self.tool_pos, self.tool_yaw, open_grip, min_steps=int(0.4 * env.fps))
         elif phase == "retreat":
-            self._segment(self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, open_grip, speed=0.25)
+            self._segment(
+                self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, open_grip, speed=0.25
+            )
         elif phase == "done":
             self._segment(self.tool_pos, self.tool_yaw, open_grip, min_steps=1)
 
@@ -154,7 +158,15 @@ class ScriptedExpert:
         dist = float(np.linalg.norm(np.asarray(goal) - self.tool_pos))
         dyaw = _wrap(yaw - self.tool_yaw)
         steps = max(int(math.ceil(max(dist / speed, abs(dyaw) / YAW_SPEED) / dt)), min_steps or 3)
-        self.seg = (self.tool_pos.copy(), np.asarray(goal, dtype=float), self.tool_yaw, self.tool_yaw + dyaw, self.grip, grip, steps)
+        self.seg = (
+            self.tool_pos.copy(),
+            np.asarray(goal, dtype=float),
+            self.tool_yaw,
+            self.tool_yaw + dyaw,
+            self.grip,
+            grip,
+            steps,
+        )
 
     # -------------------------------------------------------------- acting
     def act(self, obs=None) -> np.ndarray:
@@ -179,3 +191,43 @@ class ScriptedExpert:
             self._start("approach")
             return
         self._start(PHASES[PHASES.index(self.phase) + 1])
+
+
+def run_expert_episode(env, expert, seed: int, max_steps: int, on_step=None) -> dict:
+    """One expert episode; `on_step(obs, action, phase_label)` sees every observation before its action."""
+    obs, info = env.reset(seed=seed)
+    expert.reset(env)
+    for _ in range(max_steps):
+        action = expert.act(obs)
+        if on_step is not None:
+            on_step(obs, action, expert.phase_label)
+        obs, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            break
+    return info
+
+
+def expert_stages(
+    task: str,
+    condition: str,
+    episodes: int,
+    counterbalanced: bool = False,
+    seed: int = 0,
+    progress: bool = True,
+) -> list[int]:
+    """Stage index reached in each of `episodes` closed-loop expert episodes (seeds seed .. seed+episodes-1),
+    without rendering: the oracle check of the environment."""
+    from tqdm import tqdm
+
+    from .pickplace_env import PickPlaceEnv
+
+    env = PickPlaceEnv(task=task, condition=condition, counterbalanced=counterbalanced, obs_type="agent_pos")
+    expert = ScriptedExpert()
+    stages = []
+    for k in tqdm(
+        range(episodes), desc=f"expert {task} {condition}", unit="ep", disable=not progress, leave=False
+    ):
+        info = run_expert_episode(env, expert, seed + k, max_steps=300)
+        stages.append(int(info["stage"]))
+    env.close()
+    return stages

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_condground.conditions import MATCHES, ROLES, ConditionSpec, check_task
+from lerobot_condground.core.conditions import MATCHES, ROLES, ConditionSpec, check_task
 
 from .assets import (
     OBJECT_SHAPES,
@@ -83,7 +83,9 @@ class Layout:
         return f"Pick the {self.target_object.asset} and place it in the {self.target_receptacle.asset}."
 
 
-def choose_assets(spec: ConditionSpec, counterbalanced: bool, rng: np.random.Generator) -> list[tuple[Asset, str]]:
+def choose_assets(
+    spec: ConditionSpec, counterbalanced: bool, rng: np.random.Generator
+) -> list[tuple[Asset, str]]:
     """The target object, the target receptacle, then one asset per competitor with its match class."""
     colors = list(pool_colors("eval"))
     out: list[tuple[Asset, str]] = []
@@ -148,7 +150,11 @@ def sample_layout(task: str, spec: ConditionSpec, counterbalanced: bool, seed: i
         for label, (asset, match) in enumerate(assets[2:], start=3):
             for _ in range(MAX_ATTEMPTS):
                 candidate = Entity(
-                    label, asset, match, tuple(_sample_xy(competitor_rng)), float(competitor_rng.uniform(0, 2 * math.pi))
+                    label,
+                    asset,
+                    match,
+                    tuple(_sample_xy(competitor_rng)),
+                    float(competitor_rng.uniform(0, 2 * math.pi)),
                 )
                 if all(_separated(candidate, other) for other in entities):
                     entities.append(candidate)
@@ -170,7 +176,8 @@ def _separated(a: Entity, b: Entity) -> bool:
 
 def _max_clearance(role: str) -> float:
     return max(
-        Entity(0, Asset(role, shape, "red"), "target", (0.0, 0.0), 0.0).clearance for shape in pool_shapes(role, "eval")
+        Entity(0, Asset(role, shape, "red"), "target", (0.0, 0.0), 0.0).clearance
+        for shape in pool_shapes(role, "eval")
     )
 
 
@@ -181,7 +188,11 @@ def check_fits(task: str, spec: ConditionSpec, counterbalanced: bool, seeds: int
     # Area the disks can cover: the sector of centers grown by a typical clearance.
     grow = 0.06
     span = 2 * ANGLE_MAX
-    area = 0.5 * span * (R_MAX**2 - R_MIN**2) + grow * (span * (R_MAX + R_MIN) + 2 * (R_MAX - R_MIN)) + math.pi * grow**2
+    area = (
+        0.5 * span * (R_MAX**2 - R_MIN**2)
+        + grow * (span * (R_MAX + R_MIN) + 2 * (R_MAX - R_MIN))
+        + math.pi * grow**2
+    )
     if need > MAX_DENSITY * area:
         raise LayoutError(
             f"Condition {spec.name!r} does not fit on the table: {sum(n.values())} entities "

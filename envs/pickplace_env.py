@@ -13,25 +13,34 @@ from __future__ import annotations
 import logging
 import os
 
-import cv2
 import gymnasium as gym
 import mujoco
 import numpy as np
 
-from lerobot_condground.conditions import ConditionSpec, check_task
+from lerobot_condground.core.conditions import ConditionSpec, check_task
+from lerobot_condground.core.labels import PROMPT_SIZE, crop_entity
 
 from . import robot
 from .layout import Layout, check_fits, sample_layout
-from .scene import MAX_RENDER_HEIGHT, MAX_RENDER_WIDTH, PHYSICS_DT, apply_layout, build_model, entity_body_name
+from .scene import (
+    MAX_RENDER_HEIGHT,
+    MAX_RENDER_WIDTH,
+    PHYSICS_DT,
+    apply_layout,
+    build_model,
+    entity_body_name,
+)
 from .stages import StageTracker
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_FPS = 20
 MIN_RENDER_SIDE = 64
-PROMPT_SIZE = 64
-_DIVERGENCE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
-                        mujoco.mjtWarning.mjWARN_BADQACC)
+_DIVERGENCE_WARNINGS = (
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+    mujoco.mjtWarning.mjWARN_BADQACC,
+)
 # "agent_pos" renders nothing: for expert checks and physics benchmarks.
 OBS_TYPES = ("pixels_agent_pos", "pixels", "agent_pos")
 
@@ -69,8 +78,14 @@ class PickPlaceEnv(gym.Env):
             raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"Unknown render_mode {render_mode!r}; allowed: rgb_array or None")
-        if not isinstance(fps, int) or not 1 <= fps <= 100 or round(1 / (fps * PHYSICS_DT)) * fps * PHYSICS_DT != 1:
-            raise ValueError(f"Control rate fps={fps!r} is not allowed; allowed: divisors of 500 from 5 to 100")
+        if (
+            not isinstance(fps, int)
+            or not 1 <= fps <= 100
+            or round(1 / (fps * PHYSICS_DT)) * fps * PHYSICS_DT != 1
+        ):
+            raise ValueError(
+                f"Control rate fps={fps!r} is not allowed; allowed: divisors of 500 from 5 to 100"
+            )
         check_fits(task, self.condition, counterbalanced)
         self.task = task
         self.counterbalanced = counterbalanced
@@ -144,8 +159,12 @@ class PickPlaceEnv(gym.Env):
         # on from there, so it is truncated and flagged instead of continuing from a teleported scene.
         unstable = self._divergence_resets() > resets_before
         if unstable:
-            logger.warning("Physics diverged at t=%.2f s (%s, %s); truncating the episode",
-                           self.data.time, self.task, self.condition.name)
+            logger.warning(
+                "Physics diverged at t=%.2f s (%s, %s); truncating the episode",
+                self.data.time,
+                self.task,
+                self.condition.name,
+            )
         self.tracker.update(self.data)
         terminated = self.tracker.place
         return self._observation(), float(self.tracker.stage), terminated, unstable, self._info(unstable)
@@ -181,7 +200,13 @@ class PickPlaceEnv(gym.Env):
 
     def entity_table(self) -> list[dict]:
         return [
-            {"label": e.label, "role": e.asset.role, "match": e.match, "shape": e.asset.shape, "color": e.asset.color}
+            {
+                "label": e.label,
+                "role": e.asset.role,
+                "match": e.match,
+                "shape": e.asset.shape,
+                "color": e.asset.color,
+            }
             for e in self.layout.entities
         ]
 
@@ -199,7 +224,9 @@ class PickPlaceEnv(gym.Env):
         crop = self._prompt_crops[f"prompt_{role}"] = crop_entity(rgb, labels == label)
         return crop.copy()
 
-    def render_segmentation(self, camera: str = "top", scene_option: mujoco.MjvOption | None = None) -> np.ndarray:
+    def render_segmentation(
+        self, camera: str = "top", scene_option: mujoco.MjvOption | None = None
+    ) -> np.ndarray:
         """Entity labels per pixel (uint8), from MuJoCo's segmentation rendering."""
         r = self._get_renderer()
         r.enable_segmentation_rendering()
@@ -276,17 +303,3 @@ class PickPlaceEnv(gym.Env):
             "prompt_object": crop_entity(rgb, labels == 1),
             "prompt_receptacle": crop_entity(rgb, labels == 2),
         }
-
-
-def crop_entity(rgb: np.ndarray, mask: np.ndarray, size: int = PROMPT_SIZE, pad: float = 0.15) -> np.ndarray:
-    """A square crop around a mask's bounding box, resized to size x size; black if the mask is empty."""
-    ys, xs = np.nonzero(mask)
-    if len(ys) == 0:
-        return np.zeros((size, size, 3), dtype=np.uint8)
-    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-    side = int(max(y1 - y0, x1 - x0) * (1 + 2 * pad)) + 1
-    cy, cx = (y0 + y1) // 2, (x0 + x1) // 2
-    top, left = cy - side // 2, cx - side // 2
-    padded = cv2.copyMakeBorder(rgb, side, side, side, side, cv2.BORDER_REPLICATE)
-    crop = padded[top + side : top + 2 * side, left + side : left + 2 * side]
-    return cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA)

@@ -11,25 +11,17 @@ import math
 import mujoco
 import numpy as np
 
-# Universal Robots' published standard DH parameters for the UR3e (metres, radians).
-UR3E_DH_D = (0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921)
-UR3E_DH_A = (0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0)
-UR3E_DH_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
-
-JOINT_NAMES = (
-    "shoulder_pan",
-    "shoulder_lift",
-    "elbow",
-    "wrist_1",
-    "wrist_2",
-    "wrist_3",
+from lerobot_condground.core.ur3e import (  # noqa: F401  (the twin's names are the hardware's)
+    FLANGE_TO_TCP,
+    GRIPPER_NAME,
+    GRIPPER_STROKE,
+    HOME_QPOS,
+    JOINT_NAMES,
+    MOTOR_NAMES,
+    UR3E_DH_A,
+    UR3E_DH_ALPHA,
+    UR3E_DH_D,
 )
-GRIPPER_NAME = "gripper"
-# Names of observation.state / action entries, in order ("<joint>.pos" as LeRobot robots name them).
-MOTOR_NAMES = tuple(f"{n}.pos" for n in JOINT_NAMES) + (f"{GRIPPER_NAME}.pos",)
-
-# Elbow-up, tool pointing down above the workspace.
-HOME_QPOS = np.array([0.0, -1.75, 1.9, -1.72, -1.5708, 0.0])
 
 # UR3e limits: +-360 deg on every joint, elbow restricted to +-180 deg by self-collision.
 JOINT_RANGE = np.array([[-2 * math.pi, 2 * math.pi]] * 6)
@@ -38,10 +30,7 @@ JOINT_RANGE[2] = (-math.pi, math.pi)
 # policy) moves the arm at a bounded acceleration instead of throwing the solver off.
 JOINT_TORQUE = (54.0, 54.0, 28.0, 12.0, 12.0, 12.0)
 
-# Robotiq 2F-85-like jaw: 85 mm stroke, each finger travels half of it.
-GRIPPER_STROKE = 0.085
-FINGER_TRAVEL = GRIPPER_STROKE / 2
-FLANGE_TO_TCP = 0.155  # flange to the middle of the finger pads
+FINGER_TRAVEL = GRIPPER_STROKE / 2  # each finger travels half the stroke
 GRIPPER_FORCE = 25.0  # N, clamps like a force-limited adaptive gripper
 
 ARM_GROUP, GRIPPER_GROUP = 1, 2  # geom groups, used to filter rendering and contacts
@@ -67,8 +56,13 @@ def add_ur3e(spec: mujoco.MjSpec, base_pos=(0.0, 0.0, 0.0)) -> None:
 
     base = spec.worldbody.add_body(name="ur3e_base", pos=list(base_pos), quat=[0.0, 0.0, 0.0, 1.0])
     base.add_geom(
-        type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.06, 0.04, 0], pos=[0, 0, 0.04], rgba=joint_rgba,
-        contype=0, conaffinity=0, group=ARM_GROUP,
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[0.06, 0.04, 0],
+        pos=[0, 0, 0.04],
+        rgba=joint_rgba,
+        contype=0,
+        conaffinity=0,
+        group=ARM_GROUP,
     )
     parent = base
     for i in range(6):
@@ -79,28 +73,51 @@ def add_ur3e(spec: mujoco.MjSpec, base_pos=(0.0, 0.0, 0.0)) -> None:
             quat = _rx(UR3E_DH_ALPHA[i - 1])
         body = parent.add_body(name=f"link{i + 1}", pos=pos, quat=quat, gravcomp=1.0)
         jnt = body.add_joint(
-            name=JOINT_NAMES[i], type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1],
-            range=list(JOINT_RANGE[i]), armature=0.1, damping=2.0,
+            name=JOINT_NAMES[i],
+            type=mujoco.mjtJoint.mjJNT_HINGE,
+            axis=[0, 0, 1],
+            range=list(JOINT_RANGE[i]),
+            armature=0.1,
+            damping=2.0,
         )
         jnt.limited = mujoco.mjtLimited.mjLIMITED_TRUE
         r = radii[i]
         # Joint housing along the joint axis, then the link to the next DH frame (z by d, then x by a).
         body.add_geom(
-            type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[r * 1.15, r * 1.1, 0], rgba=joint_rgba,
-            contype=0, conaffinity=0, group=ARM_GROUP, mass=0.3,
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            size=[r * 1.15, r * 1.1, 0],
+            rgba=joint_rgba,
+            contype=0,
+            conaffinity=0,
+            group=ARM_GROUP,
+            mass=0.3,
         )
         d, a = UR3E_DH_D[i], UR3E_DH_A[i]
         if abs(d) > 1e-6 and i < 5:
             body.add_geom(
-                type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, 0, 0, d], size=[r, 0, 0],
-                rgba=link_rgba, contype=0, conaffinity=0, group=ARM_GROUP, mass=0.5,
+                type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                fromto=[0, 0, 0, 0, 0, d],
+                size=[r, 0, 0],
+                rgba=link_rgba,
+                contype=0,
+                conaffinity=0,
+                group=ARM_GROUP,
+                mass=0.5,
             )
         if abs(a) > 1e-6:
             body.add_geom(
-                type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, d, a, 0, d], size=[r, 0, 0],
-                rgba=link_rgba, contype=0, conaffinity=0, group=ARM_GROUP, mass=1.0,
+                type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                fromto=[0, 0, d, a, 0, d],
+                size=[r, 0, 0],
+                rgba=link_rgba,
+                contype=0,
+                conaffinity=0,
+                group=ARM_GROUP,
+                mass=1.0,
             )
-        act = spec.add_actuator(name=f"{JOINT_NAMES[i]}_servo", target=JOINT_NAMES[i], trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act = spec.add_actuator(
+            name=f"{JOINT_NAMES[i]}_servo", target=JOINT_NAMES[i], trntype=mujoco.mjtTrn.mjTRN_JOINT
+        )
         kp = 3000.0 if i < 3 else 800.0
         act.set_to_position(kp=kp, dampratio=1.0)
         act.forcerange = [-JOINT_TORQUE[i], JOINT_TORQUE[i]]
@@ -116,31 +133,60 @@ def _add_gripper(spec: mujoco.MjSpec, flange) -> None:
     dark = [0.15, 0.15, 0.17, 1.0]
     pad_rgba = [0.3, 0.3, 0.32, 1.0]
     flange.add_geom(
-        type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.035, 0.03, 0], pos=[0, 0, 0.03], rgba=dark,
-        contype=BIT_FINGER, conaffinity=BIT_OBJECT | BIT_TABLE, group=GRIPPER_GROUP, mass=0.4,
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[0.035, 0.03, 0],
+        pos=[0, 0, 0.03],
+        rgba=dark,
+        contype=BIT_FINGER,
+        conaffinity=BIT_OBJECT | BIT_TABLE,
+        group=GRIPPER_GROUP,
+        mass=0.4,
     )
     flange.add_geom(
-        type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.055, 0.02, 0.015], pos=[0, 0, 0.075], rgba=dark,
-        contype=BIT_FINGER, conaffinity=BIT_OBJECT | BIT_TABLE, group=GRIPPER_GROUP, mass=0.3,
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[0.055, 0.02, 0.015],
+        pos=[0, 0, 0.075],
+        rgba=dark,
+        contype=BIT_FINGER,
+        conaffinity=BIT_OBJECT | BIT_TABLE,
+        group=GRIPPER_GROUP,
+        mass=0.3,
     )
     flange.add_site(name="tcp", pos=[0, 0, FLANGE_TO_TCP], size=[0.005, 0, 0])
     for side, sign in (("left", 1.0), ("right", -1.0)):
         # A finger at q=0 stands fully open; q=FINGER_TRAVEL closes it onto the tool axis.
         finger = flange.add_body(name=f"{side}_finger", pos=[0, 0, 0.09], gravcomp=1.0)
         finger.add_joint(
-            name=f"{side}_finger", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[-sign, 0, 0],
-            range=[0.0, FINGER_TRAVEL], armature=0.01, damping=5.0,
+            name=f"{side}_finger",
+            type=mujoco.mjtJoint.mjJNT_SLIDE,
+            axis=[-sign, 0, 0],
+            range=[0.0, FINGER_TRAVEL],
+            armature=0.01,
+            damping=5.0,
         )
         x_open = sign * (FINGER_TRAVEL + 0.008)
         finger.add_geom(
-            type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.006, 0.012, 0.032], pos=[x_open + sign * 0.004, 0, 0.035],
-            rgba=dark, contype=BIT_FINGER, conaffinity=BIT_OBJECT | BIT_TABLE, group=GRIPPER_GROUP, mass=0.05,
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[0.006, 0.012, 0.032],
+            pos=[x_open + sign * 0.004, 0, 0.035],
+            rgba=dark,
+            contype=BIT_FINGER,
+            conaffinity=BIT_OBJECT | BIT_TABLE,
+            group=GRIPPER_GROUP,
+            mass=0.05,
         )
         finger.add_geom(
-            name=f"{side}_pad", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.004, 0.011, 0.02],
-            pos=[x_open - sign * 0.006, 0, FLANGE_TO_TCP - 0.09], rgba=pad_rgba,
-            contype=BIT_FINGER, conaffinity=BIT_OBJECT | BIT_TABLE, group=GRIPPER_GROUP,
-            friction=[1.5, 0.02, 0.002], condim=4, mass=0.02,
+            name=f"{side}_pad",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[0.004, 0.011, 0.02],
+            pos=[x_open - sign * 0.006, 0, FLANGE_TO_TCP - 0.09],
+            rgba=pad_rgba,
+            contype=BIT_FINGER,
+            conaffinity=BIT_OBJECT | BIT_TABLE,
+            group=GRIPPER_GROUP,
+            friction=[1.5, 0.02, 0.002],
+            condim=4,
+            mass=0.02,
         )
     eq = spec.add_equality(type=mujoco.mjtEq.mjEQ_JOINT, name1="right_finger", name2="left_finger")
     eq.data[:5] = [0, 1, 0, 0, 0]

@@ -45,14 +45,21 @@ def build_model(layout: Layout) -> mujoco.MjModel:
 
     world = spec.worldbody
     world.add_geom(
-        name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.45, 0.75, 0.02], pos=[0.15, 0.0, -0.02],
-        rgba=TABLE_RGBA, contype=robot.BIT_TABLE, conaffinity=robot.BIT_OBJECT | robot.BIT_FINGER,
+        name="table",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[0.45, 0.75, 0.02],
+        pos=[0.15, 0.0, -0.02],
+        rgba=TABLE_RGBA,
+        contype=robot.BIT_TABLE,
+        conaffinity=robot.BIT_OBJECT | robot.BIT_FINGER,
     )
     world.add_light(pos=[0.3, 0.0, 1.5], dir=[0, 0, -1], diffuse=[0.5, 0.5, 0.5], castshadow=False)
     # Scene camera across the table, facing the robot: the arm rarely hides the workspace from it.
     _add_lookat_camera(world, "top", eye=(0.78, 0.0, 0.92), target=(0.17, 0.0, 0.0), fovy=52.0)
     robot.add_ur3e(spec)
-    spec.body("flange").add_camera(name="wrist", pos=[0.0, -0.06, 0.04], quat=_quat_from_euler(0, math.pi, 0), fovy=75.0)
+    spec.body("flange").add_camera(
+        name="wrist", pos=[0.0, -0.06, 0.04], quat=_quat_from_euler(0, math.pi, 0), fovy=75.0
+    )
 
     for entity in layout.entities:
         body = world.add_body(name=entity_body_name(entity.label), pos=[*entity.xy, 0.0])
@@ -80,9 +87,11 @@ def apply_layout(model: mujoco.MjModel, data: mujoco.MjData, layout: Layout) -> 
 def _add_object_geoms(spec: mujoco.MjSpec, body, asset: Asset, label: int) -> None:
     h = OBJECT_HEIGHT / 2
     common = dict(
-        rgba=asset.rgba, contype=robot.BIT_OBJECT,
+        rgba=asset.rgba,
+        contype=robot.BIT_OBJECT,
         conaffinity=robot.BIT_TABLE | robot.BIT_OBJECT | robot.BIT_FINGER,
-        friction=[1.0, 0.02, 0.002], condim=4,
+        friction=[1.0, 0.02, 0.002],
+        condim=4,
     )
     shape = asset.shape
     if shape == "cube":
@@ -126,12 +135,20 @@ def _add_receptacle_geoms(body, asset: Asset) -> None:
     if len(verts) == 4:
         hx = max(abs(v[0]) for v in verts)
         hy = max(abs(v[1]) for v in verts)
-        body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx, hy, FLOOR_THICKNESS / 2],
-                      pos=[0, 0, FLOOR_THICKNESS / 2], **common)
+        body.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[hx, hy, FLOOR_THICKNESS / 2],
+            pos=[0, 0, FLOOR_THICKNESS / 2],
+            **common,
+        )
     else:
         apothem = min(shape.apothems)
-        body.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[min(apothem + 0.003, inner), FLOOR_THICKNESS / 2, 0],
-                      pos=[0, 0, FLOOR_THICKNESS / 2], **common)
+        body.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            size=[min(apothem + 0.003, inner), FLOOR_THICKNESS / 2, 0],
+            pos=[0, 0, FLOOR_THICKNESS / 2],
+            **common,
+        )
     z = FLOOR_THICKNESS + shape.wall_height / 2
     for k, (angle_deg, apothem) in enumerate(zip(shape.normals_deg, shape.apothems)):
         v1, v2 = verts[k - 1], verts[k]  # the wall between the corners before and after this side
@@ -141,7 +158,9 @@ def _add_receptacle_geoms(body, asset: Asset) -> None:
         body.add_geom(
             type=mujoco.mjtGeom.mjGEOM_BOX,
             size=[WALL_THICKNESS / 2, length / 2 + WALL_THICKNESS / 2, shape.wall_height / 2],
-            pos=[*center, z], quat=[math.cos(a / 2), 0, 0, math.sin(a / 2)], **common,
+            pos=[*center, z],
+            quat=[math.cos(a / 2), 0, 0, math.sin(a / 2)],
+            **common,
         )
 
 

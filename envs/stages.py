@@ -29,12 +29,16 @@ class StageTracker:
         self.layout = layout
         self.geom_label = np.zeros(model.ngeom, dtype=np.int32)
         for e in layout.entities:
-            self.geom_label[model.body_geomadr[model.body(entity_body_name(e.label)).id] + np.arange(
-                model.body_geomnum[model.body(entity_body_name(e.label)).id])] = e.label
+            self.geom_label[
+                model.body_geomadr[model.body(entity_body_name(e.label)).id]
+                + np.arange(model.body_geomnum[model.body(entity_body_name(e.label)).id])
+            ] = e.label
         self.finger_of_geom = np.zeros(model.ngeom, dtype=np.int8)  # 1 left, 2 right
         for side, code in (("left_finger", 1), ("right_finger", 2)):
             bid = model.body(side).id
-            self.finger_of_geom[model.body_geomadr[bid] : model.body_geomadr[bid] + model.body_geomnum[bid]] = code
+            self.finger_of_geom[
+                model.body_geomadr[bid] : model.body_geomadr[bid] + model.body_geomnum[bid]
+            ] = code
         self.body_of_label = {e.label: model.body(entity_body_name(e.label)).id for e in layout.entities}
         self.receptacles = [e for e in layout.entities if e.asset.role == "receptacle"]
         self.reset()
@@ -53,8 +57,12 @@ class StageTracker:
         g1, g2 = data.contact.geom1[: data.ncon], data.contact.geom2[: data.ncon]
         touching = {}
         for side in (1, 2):
-            labels = np.concatenate([self.geom_label[g2][self.finger_of_geom[g1] == side],
-                                     self.geom_label[g1][self.finger_of_geom[g2] == side]])
+            labels = np.concatenate(
+                [
+                    self.geom_label[g2][self.finger_of_geom[g1] == side],
+                    self.geom_label[g1][self.finger_of_geom[g2] == side],
+                ]
+            )
             touching[side] = set(labels[labels > 0].tolist())
         held = touching[1] & touching[2]
         self.held = min(held) if held else 0
@@ -84,7 +92,9 @@ class StageTracker:
             rel = pos[:2] - np.array(rec.xy)
             c, s = math.cos(-rec.yaw), math.sin(-rec.yaw)
             local = np.array([c * rel[0] - s * rel[1], s * rel[0] + c * rel[1]])
-            if pos[2] < FLOOR_THICKNESS + shape.wall_height + OBJECT_HEIGHT / 2 and inside_receptacle(rec.asset.shape, local):
+            if pos[2] < FLOOR_THICKNESS + shape.wall_height + OBJECT_HEIGHT / 2 and inside_receptacle(
+                rec.asset.shape, local
+            ):
                 return "target_receptacle" if rec.is_target else "competitor_receptacle"
         return "elsewhere"
 
@@ -99,7 +109,9 @@ class StageTracker:
             "grasped_first_match": self._match(self.grasped_first),
             "target_location": self.location(data, 1),
             "grasped_competitor": self.grasped_competitor,
-            "competitor_location": self.location(data, self.grasped_competitor) if self.grasped_competitor else "none",
+            "competitor_location": self.location(data, self.grasped_competitor)
+            if self.grasped_competitor
+            else "none",
         }
 
     def _match(self, label: int) -> str:

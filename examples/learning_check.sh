@@ -34,7 +34,7 @@ done
 python - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
-from lerobot_condground.stage_metrics import format_table, stage_metrics
+from lerobot_condground.evaluation.stage_metrics import format_table, stage_metrics
 out = Path(sys.argv[1])
 rows = []
 for variant in ("standard", "full"):

@@ -1,6 +1,6 @@
 """Run the scripted expert for one episode and save the first frame with its segmentation overlay.
 
-    python examples/run_expert.py --condition full_mixed --out expert_frame.png
+python examples/run_expert.py --condition full_mixed --out expert_frame.png
 """
 
 import argparse
@@ -9,8 +9,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 
-import lerobot_condground  # noqa: F401  registers gym_condground/*
-from lerobot_condground.envs.expert import ScriptedExpert
+from lerobot_condground.envs.expert import ScriptedExpert  # importing envs registers gym_condground/*
 
 
 def main() -> None:

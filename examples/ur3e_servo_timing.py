@@ -15,11 +15,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from ur_fake import free_loopback_host, start_fake_controller  # noqa: E402
-
-from lerobot_condground.envs.robot import MOTOR_NAMES  # noqa: E402
+from lerobot_condground.core.ur3e import MOTOR_NAMES  # noqa: E402
 from lerobot_condground.robots.config_ur3e import UR3eConfig  # noqa: E402
 from lerobot_condground.robots.ur3e import UR3e  # noqa: E402
+from ur_fake import free_loopback_host, start_fake_controller  # noqa: E402
 
 Q = [0.1, -1.6, 1.5, -1.4, -1.57, 0.3]
 
@@ -44,8 +43,12 @@ def main() -> None:
     dt = np.diff(t) * 1e3
     rate = (len(t) - 1) / (t[-1] - t[0])
     print(f"connect: {connect_s:.2f} s")
-    print(f"servoJ set points: {len(t)}, rate {rate:.1f} Hz of {config.servo_hz:.0f} Hz (ratio {rate / config.servo_hz:.3f})")
-    print(f"interval ms: mean {dt.mean():.2f}, p50 {np.median(dt):.2f}, p99 {np.percentile(dt, 99):.2f}, max {dt.max():.2f}")
+    print(
+        f"servoJ set points: {len(t)}, rate {rate:.1f} Hz of {config.servo_hz:.0f} Hz (ratio {rate / config.servo_hz:.3f})"
+    )
+    print(
+        f"interval ms: mean {dt.mean():.2f}, p50 {np.median(dt):.2f}, p99 {np.percentile(dt, 99):.2f}, max {dt.max():.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ def main() -> None:
             if scene:
                 robot.new_episode()
             start = time.perf_counter()
-            for steps in range(1, 401):
+            for steps in range(1, 401):  # noqa: B007  (read after the loop)
                 t0 = time.perf_counter()
                 robot.get_observation()
                 robot.send_action(teleop.get_action())
@@ -39,8 +39,11 @@ def main() -> None:
                 if realtime:
                     time.sleep(max(0.0, period - (time.perf_counter() - t0)))
             placed += robot.arm.env.tracker.place
-            print(f"scene {scene}: placed={robot.arm.env.tracker.place} steps={steps} "
-                  f"({time.perf_counter() - start:.1f} s) watchdog stops={robot.arm.state().stalls}", flush=True)
+            print(
+                f"scene {scene}: placed={robot.arm.env.tracker.place} steps={steps} "
+                f"({time.perf_counter() - start:.1f} s) watchdog stops={robot.arm.state().stalls}",
+                flush=True,
+            )
     teleop.disconnect()
     print(f"placed {placed}/{args.scenes} ({args.condition}, {'real time' if realtime else 'lock-step'})")
 

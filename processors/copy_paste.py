@@ -31,8 +31,8 @@ import torch.nn.functional as F
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.processor.pipeline import EnvTransition, ProcessorStep, ProcessorStepRegistry, TransitionKey
 
+from lerobot_condground.core.labels import SYNTHETIC_DISTRACTOR, TARGET_OBJECT, TARGET_RECEPTACLE
 from lerobot_condground.envs.assets import AUGMENTATION_COLORS, COLORS
-from lerobot_condground.labels import SYNTHETIC_DISTRACTOR, TARGET_OBJECT, TARGET_RECEPTACLE
 
 CATEGORIES = ("same_color", "same_shape", "neither")
 SAME_COLOR, SAME_SHAPE, NEITHER = range(3)
@@ -42,8 +42,18 @@ CANDIDATES = 4  # positions tried per paste; the one covering the targets least 
 SCALE_JITTER = 0.1
 MAX_COUNT = 16
 MAX_SPRITE_SCALE = 4.0
-CONFIG_FIELDS = ("camera_key", "segmentation_key", "prob", "min_count", "max_count", "max_occlusion",
-                 "categories", "seed", "sprite_scale", "placement_box")
+CONFIG_FIELDS = (
+    "camera_key",
+    "segmentation_key",
+    "prob",
+    "min_count",
+    "max_count",
+    "max_occlusion",
+    "categories",
+    "seed",
+    "sprite_scale",
+    "placement_box",
+)
 
 
 def _luminance(rgb: torch.Tensor) -> torch.Tensor:
@@ -56,19 +66,27 @@ def _masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return flat.nanmedian(dim=-1).values
 
 
-def _theta(dest: torch.Tensor, angle: torch.Tensor, scale: torch.Tensor, src_center: torch.Tensor,
-           height: int, width: int) -> torch.Tensor:
+def _theta(
+    dest: torch.Tensor,
+    angle: torch.Tensor,
+    scale: torch.Tensor,
+    src_center: torch.Tensor,
+    height: int,
+    width: int,
+) -> torch.Tensor:
     """affine_grid matrices (..., 2, 3) pasting a source (same size as the frame) so that its point
     `src_center` lands on `dest` (pixels, x first), rotated by `angle` and scaled by `scale`."""
     half = dest.new_tensor([width / 2, height / 2])
     cos, sin = torch.cos(angle) / scale, torch.sin(angle) / scale
     # Output pixel p maps to source pixel src_center + M (p - dest), M the inverse rotation and scale;
     # conjugated with the pixel <-> normalized map p = half * (n + 1) (align_corners=False).
-    lin = torch.stack([torch.stack([cos, sin * height / width], -1),
-                       torch.stack([-sin * width / height, cos], -1)], -2)
+    lin = torch.stack(
+        [torch.stack([cos, sin * height / width], -1), torch.stack([-sin * width / height, cos], -1)], -2
+    )
     offset = dest - half
-    moved = torch.stack([cos * offset[..., 0] + sin * offset[..., 1],
-                         -sin * offset[..., 0] + cos * offset[..., 1]], -1)
+    moved = torch.stack(
+        [cos * offset[..., 0] + sin * offset[..., 1], -sin * offset[..., 0] + cos * offset[..., 1]], -1
+    )
     trans = (src_center - moved) / half - 1.0
     return torch.cat([lin, trans.unsqueeze(-1)], -1)
 
@@ -81,20 +99,17 @@ def _warp(source: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     ys = (torch.arange(height, device=source.device, dtype=source.dtype) * 2 + 1) / height - 1
     t = theta.to(source.dtype).view(-1, 2, 3, 1, 1)
     grid = t[:, :, 0] * xs + (t[:, :, 1] * ys.view(-1, 1) + t[:, :, 2])  # (N, 2, H, W)
-    return F.grid_sample(source, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="zeros",
-                         align_corners=False)
+    return F.grid_sample(
+        source, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="zeros", align_corners=False
+    )
 
 
-@ProcessorStepRegistry.register(name="condground_copy_paste")
 @dataclass
-class CopyPasteDistractorStep(ProcessorStep):
-    """Pastes synthetic look-alike competitors into one camera and marks them in the segmentation.
-
-    Place it after the device step and before normalization: it expects float frames in [0, 1].
-    """
+class CopyPasteParams:
+    """What the augmentation pastes, defined once: the step's fields, `condground augment --copy_paste.*`,
+    and the defaults of act_modified's `copy_paste_*` fields."""
 
     camera_key: str = "observation.images.top"
-    segmentation_key: str = "observation.segmentation"
     prob: float = 0.8  # probability that a sample is augmented
     min_count: int = 1
     max_count: int = 4
@@ -105,38 +120,62 @@ class CopyPasteDistractorStep(ProcessorStep):
     # Where paste centers may fall, as fractions of the frame (top, left, bottom, right): by default the
     # table's part of the scene camera's view, so pastes rarely float over the background.
     placement_box: list[float] = field(default_factory=lambda: [0.25, 0.05, 0.95, 0.95])
-    _bank: torch.Tensor | None = field(default=None, init=False, repr=False)
-    _canvases: dict = field(default_factory=dict, init=False, repr=False)
-    _generator: torch.Generator = field(init=False, repr=False)
 
     def __post_init__(self):
-        for name in ("camera_key", "segmentation_key"):
-            value = getattr(self, name)
-            if not isinstance(value, str) or not value:
-                raise ValueError(f"{name}={value!r} is not allowed; allowed: a non-empty feature key string")
+        _check_key("camera_key", self.camera_key)
         for name, low, high in (("prob", 0.0, 1.0), ("max_occlusion", 0.0, 1.0)):
             _check_number(name, getattr(self, name), low, high)
         _check_integer("max_count", self.max_count, 1, MAX_COUNT)
         _check_integer("min_count", self.min_count, 0, self.max_count)
         _check_integer("seed", self.seed, 0, 2**63 - 1)
-        if isinstance(self.sprite_scale, bool) or not isinstance(self.sprite_scale, int | float) or not (
-            0 < self.sprite_scale <= MAX_SPRITE_SCALE
+        if (
+            isinstance(self.sprite_scale, bool)
+            or not isinstance(self.sprite_scale, int | float)
+            or not (0 < self.sprite_scale <= MAX_SPRITE_SCALE)
         ):
-            raise ValueError(f"sprite_scale={self.sprite_scale!r} is not allowed; allowed: 0 < sprite_scale <= "
-                             f"{MAX_SPRITE_SCALE}")
+            raise ValueError(
+                f"sprite_scale={self.sprite_scale!r} is not allowed; allowed: 0 < sprite_scale <= "
+                f"{MAX_SPRITE_SCALE}"
+            )
         self.categories = list(self.categories)
-        if not self.categories or any(c not in CATEGORIES for c in self.categories) or len(
-            set(self.categories)
-        ) != len(self.categories):
-            raise ValueError(f"categories={self.categories!r} is not allowed; allowed: a non-empty list of "
-                             f"distinct values from {', '.join(CATEGORIES)}")
+        if (
+            not self.categories
+            or any(c not in CATEGORIES for c in self.categories)
+            or len(set(self.categories)) != len(self.categories)
+        ):
+            raise ValueError(
+                f"categories={self.categories!r} is not allowed; allowed: a non-empty list of "
+                f"distinct values from {', '.join(CATEGORIES)}"
+            )
         self.placement_box = list(self.placement_box)
         box = self.placement_box
-        if len(box) != 4 or any(isinstance(v, bool) or not isinstance(v, int | float) for v in box) or not (
-            0 <= box[0] <= box[2] <= 1 and 0 <= box[1] <= box[3] <= 1
+        if (
+            len(box) != 4
+            or any(isinstance(v, bool) or not isinstance(v, int | float) for v in box)
+            or not (0 <= box[0] <= box[2] <= 1 and 0 <= box[1] <= box[3] <= 1)
         ):
-            raise ValueError(f"placement_box={box!r} is not allowed; allowed: [top, left, bottom, right] fractions "
-                             f"with 0 <= top <= bottom <= 1 and 0 <= left <= right <= 1")
+            raise ValueError(
+                f"placement_box={box!r} is not allowed; allowed: [top, left, bottom, right] fractions "
+                f"with 0 <= top <= bottom <= 1 and 0 <= left <= right <= 1"
+            )
+
+
+@ProcessorStepRegistry.register(name="condground_copy_paste")
+@dataclass
+class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
+    """Pastes synthetic look-alike competitors into one camera and marks them in the segmentation.
+
+    Place it after the device step and before normalization: it expects float frames in [0, 1].
+    """
+
+    segmentation_key: str = "observation.segmentation"
+    _bank: torch.Tensor | None = field(default=None, init=False, repr=False)
+    _canvases: dict = field(default_factory=dict, init=False, repr=False)
+    _generator: torch.Generator = field(init=False, repr=False)
+
+    def __post_init__(self):
+        super().__post_init__()
+        _check_key("segmentation_key", self.segmentation_key)
         self._generator = torch.Generator().manual_seed(self.seed)
 
     # ------------------------------------------------------------------ ProcessorStep interface
@@ -148,12 +187,17 @@ class CopyPasteDistractorStep(ProcessorStep):
         observation = transition.get(TransitionKey.OBSERVATION) or {}
         for key in (self.camera_key, self.segmentation_key):
             if key not in observation:
-                raise KeyError(f"condground_copy_paste needs observation key {key!r}; the batch has "
-                               f"{sorted(observation)}")
+                raise KeyError(
+                    f"condground_copy_paste needs observation key {key!r}; the batch has "
+                    f"{sorted(observation)}"
+                )
         images, segmentation = self.augment(observation[self.camera_key], observation[self.segmentation_key])
         new = dict(transition)
-        new[TransitionKey.OBSERVATION] = {**observation, self.camera_key: images,
-                                          self.segmentation_key: segmentation}
+        new[TransitionKey.OBSERVATION] = {
+            **observation,
+            self.camera_key: images,
+            self.segmentation_key: segmentation,
+        }
         return new
 
     def get_config(self) -> dict[str, Any]:
@@ -184,11 +228,15 @@ class CopyPasteDistractorStep(ProcessorStep):
         if unbatched:
             images, segmentation = images.unsqueeze(0), segmentation.unsqueeze(0)
         if images.dim() != 4 or images.shape[1] != 3 or not images.is_floating_point():
-            raise ValueError(f"{self.camera_key} must be float frames (B, 3, H, W) or (3, H, W) in [0, 1]; got "
-                             f"{images.dtype} {tuple(images.shape)}")
+            raise ValueError(
+                f"{self.camera_key} must be float frames (B, 3, H, W) or (3, H, W) in [0, 1]; got "
+                f"{images.dtype} {tuple(images.shape)}"
+            )
         if segmentation.shape != (images.shape[0], *images.shape[2:]) or segmentation.is_floating_point():
-            raise ValueError(f"{self.segmentation_key} must be an integer label map {images.shape[:1] + images.shape[2:]}"
-                             f" matching {self.camera_key}; got {segmentation.dtype} {tuple(segmentation.shape)}")
+            raise ValueError(
+                f"{self.segmentation_key} must be an integer label map {images.shape[:1] + images.shape[2:]}"
+                f" matching {self.camera_key}; got {segmentation.dtype} {tuple(segmentation.shape)}"
+            )
         out_images, out_seg = self._augment_batch(images, segmentation)
         if unbatched:
             return out_images[0], out_seg[0]
@@ -230,14 +278,18 @@ class CopyPasteDistractorStep(ProcessorStep):
         luminance = _luminance(frames)
         median_color = torch.stack([_masked_median(frames, targets[:, r]) for r in range(2)], 1)  # (B, 2, 3)
         median_luminance = torch.stack([_masked_median(luminance, targets[:, r])[:, 0] for r in range(2)], 1)
-        ys, xs = torch.meshgrid(torch.arange(height, device=device) + 0.5, torch.arange(width, device=device) + 0.5,
-                                indexing="ij")
+        ys, xs = torch.meshgrid(
+            torch.arange(height, device=device) + 0.5, torch.arange(width, device=device) + 0.5, indexing="ij"
+        )
         centroid = torch.stack([(targets * xs).flatten(2).sum(-1), (targets * ys).flatten(2).sum(-1)], -1)
         centroid = centroid / target_pixels.clamp(min=1).unsqueeze(-1)  # (B, 2, 2)
         canvas_center = torch.tensor([width / 2, height / 2], device=device)
         covered = torch.zeros_like(targets)
         top, left, bottom, right = self.placement_box
-        box_origin, box_size = torch.tensor([left, top], device=device), torch.tensor([right - left, bottom - top], device=device)
+        box_origin, box_size = (
+            torch.tensor([left, top], device=device),
+            torch.tensor([right - left, bottom - top], device=device),
+        )
         frame_size = torch.tensor([width, height], device=device)
         rows = torch.arange(batch, device=device)
 
@@ -249,27 +301,43 @@ class CopyPasteDistractorStep(ProcessorStep):
             sprite = canvases[role * SHAPES_PER_ROLE + draws["shape"][slot]]  # (B, 2, H, W)
             tint = torch.where(
                 (category == SAME_COLOR).unsqueeze(1),
-                median_color[rows, role] / shading_median[role * SHAPES_PER_ROLE + draws["shape"][slot]].unsqueeze(1),
+                median_color[rows, role]
+                / shading_median[role * SHAPES_PER_ROLE + draws["shape"][slot]].unsqueeze(1),
                 color,
             )
             copy_alpha = targets[rows, role].unsqueeze(1).float()
-            copy_rgb = luminance / median_luminance[rows, role].clamp(min=1e-3).view(batch, 1, 1, 1) * color.view(
-                batch, 3, 1, 1)
+            copy_rgb = (
+                luminance
+                / median_luminance[rows, role].clamp(min=1e-3).view(batch, 1, 1, 1)
+                * color.view(batch, 3, 1, 1)
+            )
             alpha = torch.where(is_copy, copy_alpha, sprite[:, 1:])
             # Premultiplied (sprites are stored so), so bilinear sampling does not bleed the surroundings
             # into the paste's edge.
-            premultiplied = torch.where(is_copy, copy_rgb * copy_alpha, sprite[:, :1] * tint.view(batch, 3, 1, 1))
+            premultiplied = torch.where(
+                is_copy, copy_rgb * copy_alpha, sprite[:, :1] * tint.view(batch, 3, 1, 1)
+            )
             source = torch.cat([premultiplied, alpha], 1)
             src_center = torch.where(is_copy.view(batch, 1), centroid[rows, role], canvas_center)
 
             dest = (box_origin + draws["position"][slot] * box_size) * frame_size  # (B, K, 2) pixels
             angle, scale = draws["angle"][slot], draws["scale"][slot]
-            theta = _theta(dest, angle.unsqueeze(1).expand(-1, CANDIDATES), scale.unsqueeze(1).expand(-1, CANDIDATES),
-                           src_center.unsqueeze(1), height, width)  # (B, K, 2, 3)
-            cand = _warp(alpha.repeat_interleave(CANDIDATES, 0), theta.flatten(0, 1)).view(batch, CANDIDATES, height, width)
+            theta = _theta(
+                dest,
+                angle.unsqueeze(1).expand(-1, CANDIDATES),
+                scale.unsqueeze(1).expand(-1, CANDIDATES),
+                src_center.unsqueeze(1),
+                height,
+                width,
+            )  # (B, K, 2, 3)
+            cand = _warp(alpha.repeat_interleave(CANDIDATES, 0), theta.flatten(0, 1)).view(
+                batch, CANDIDATES, height, width
+            )
             cand = cand > 0.5
             # Covered target pixels if this candidate were pasted on top of what is already there.
-            cover = (covered.unsqueeze(1) | (cand.unsqueeze(2) & targets.unsqueeze(1))).flatten(3).sum(-1)  # (B, K, 2)
+            cover = (
+                (covered.unsqueeze(1) | (cand.unsqueeze(2) & targets.unsqueeze(1))).flatten(3).sum(-1)
+            )  # (B, K, 2)
             fraction = (cover / target_pixels.clamp(min=1).unsqueeze(1)).amax(-1)  # (B, K)
             best = fraction.argmin(1)
             keep = active & (fraction[rows, best] <= self.max_occlusion)
@@ -299,7 +367,9 @@ class CopyPasteDistractorStep(ProcessorStep):
 
             bank = self._sprite_bank()
             side = max(1, round(bank.shape[-1] * height / BANK_HEIGHT * self.sprite_scale))
-            scaled = F.interpolate(bank, size=(side, side), mode="bilinear", antialias=True, align_corners=False)
+            scaled = F.interpolate(
+                bank, size=(side, side), mode="bilinear", antialias=True, align_corners=False
+            )
             canvas = torch.zeros(bank.shape[0], 2, height, width)
             # A sprite larger than the frame is cropped around its center.
             ch, cw = min(side, height), min(side, width)
@@ -309,6 +379,11 @@ class CopyPasteDistractorStep(ProcessorStep):
             self._canvases.clear()  # one resolution at a time in practice; do not hoard memory
             self._canvases[key] = canvas.to(device)
         return self._canvases[key]
+
+
+def _check_key(name: str, value) -> None:
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{name}={value!r} is not allowed; allowed: a non-empty feature key string")
 
 
 def _check_number(name: str, value, low: float, high: float) -> None:

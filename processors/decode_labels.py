@@ -2,7 +2,7 @@
 prompt crops) back into uint8 tensors at the head of a policy's preprocessor.
 
 They are stored as PNG strings because LeRobot reads whole parquet rows for every frame of an action
-chunk (see `lerobot_condground.labels`); decoding only the current frame here keeps data loading as
+chunk (see `lerobot_condground.core.labels`); decoding only the current frame here keeps data loading as
 fast as for a dataset without labels. Values that already are tensors (prompts sent by the env or a
 robot at inference) pass through.
 """
@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.processor.pipeline import ObservationProcessorStep, ProcessorStepRegistry
 
-from lerobot_condground.labels import PNG_LABEL_KEYS, decode_labels
+from lerobot_condground.core.labels import PNG_LABEL_KEYS, decode_labels
 
 
 @ProcessorStepRegistry.register(name="condground_decode_labels")
@@ -26,7 +26,9 @@ class DecodeLabelsStep(ObservationProcessorStep):
     def __post_init__(self):
         unknown = [key for key in self.keys if key not in PNG_LABEL_KEYS]
         if unknown:
-            raise ValueError(f"keys={unknown} are not PNG label features; allowed: {', '.join(PNG_LABEL_KEYS)}")
+            raise ValueError(
+                f"keys={unknown} are not PNG label features; allowed: {', '.join(PNG_LABEL_KEYS)}"
+            )
 
     def observation(self, observation: dict) -> dict:
         return decode_labels(observation, self.keys)

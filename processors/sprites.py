@@ -51,7 +51,8 @@ def render_sprite_bank() -> torch.Tensor:
     try:
         for k, entity in enumerate(parked):
             posed = tuple(
-                Entity(e.label, e.asset, e.match, RENDER_XY if j == k else e.xy, 0.0) for j, e in enumerate(parked)
+                Entity(e.label, e.asset, e.match, RENDER_XY if j == k else e.xy, 0.0)
+                for j, e in enumerate(parked)
             )
             scene.apply_layout(model, data, Layout("sprites", posed))
             mujoco.mj_forward(model, data)

@@ -3,13 +3,21 @@
 import json
 
 import pytest
-from conftest import read_json, run_cli
+
+from helpers import read_json, run_cli
 
 TINY_ACT = [
-    "--policy.type=act", "--policy.device=cpu", "--policy.push_to_hub=false",
-    "--policy.pretrained_backbone_weights=null", "--policy.dim_model=64", "--policy.n_heads=2",
-    "--policy.dim_feedforward=128", "--policy.n_encoder_layers=1", "--policy.n_decoder_layers=1",
-    "--policy.chunk_size=10", "--policy.n_action_steps=10",
+    "--policy.type=act",
+    "--policy.device=cpu",
+    "--policy.push_to_hub=false",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.dim_model=64",
+    "--policy.n_heads=2",
+    "--policy.dim_feedforward=128",
+    "--policy.n_encoder_layers=1",
+    "--policy.n_decoder_layers=1",
+    "--policy.chunk_size=10",
+    "--policy.n_action_steps=10",
 ]
 
 
@@ -19,11 +27,24 @@ def stock_act_checkpoint(plain_dataset, tmp_path_factory):
     periodic env eval."""
     out = tmp_path_factory.mktemp("train") / "run"
     run_cli(
-        "lerobot-train", *TINY_ACT, "--dataset.repo_id=local/test_plain", f"--dataset.root={plain_dataset}",
-        "--batch_size=2", "--steps=2", "--save_freq=2", "--log_freq=1", "--num_workers=0",
-        "--env.type=condground", "--env.task=PickPlaceRandomBin-v0", "--env.condition=full_mixed",
-        "--env.episode_length=8", "--env_eval_freq=2", "--eval.n_episodes=1", "--eval.batch_size=1",
-        f"--output_dir={out}", "--wandb.enable=false",
+        "lerobot-train",
+        *TINY_ACT,
+        "--dataset.repo_id=local/test_plain",
+        f"--dataset.root={plain_dataset}",
+        "--batch_size=2",
+        "--steps=2",
+        "--save_freq=2",
+        "--log_freq=1",
+        "--num_workers=0",
+        "--env.type=condground",
+        "--env.task=PickPlaceRandomBin-v0",
+        "--env.condition=full_mixed",
+        "--env.episode_length=8",
+        "--env_eval_freq=2",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        f"--output_dir={out}",
+        "--wandb.enable=false",
     )
     ckpt = out / "checkpoints" / "last" / "pretrained_model"
     config = read_json(ckpt / "config.json")
@@ -36,9 +57,15 @@ def stock_act_checkpoint(plain_dataset, tmp_path_factory):
 def test_stock_lerobot_eval_runs_our_env(stock_act_checkpoint, tmp_path, async_envs):
     out = tmp_path / "eval"
     run_cli(
-        "lerobot-eval", f"--policy.path={stock_act_checkpoint}", "--env.type=condground",
-        "--env.task=PickPlaceFixedBin-v0", "--env.condition=object_shape_2", "--env.episode_length=15",
-        "--eval.n_episodes=2", "--eval.batch_size=2", f"--eval.use_async_envs={str(async_envs).lower()}",
+        "lerobot-eval",
+        f"--policy.path={stock_act_checkpoint}",
+        "--env.type=condground",
+        "--env.task=PickPlaceFixedBin-v0",
+        "--env.condition=object_shape_2",
+        "--env.episode_length=15",
+        "--eval.n_episodes=2",
+        "--eval.batch_size=2",
+        f"--eval.use_async_envs={str(async_envs).lower()}",
         f"--output_dir={out}",
     )
     info = json.loads((out / "eval_info.json").read_text())
@@ -52,8 +79,13 @@ def test_stock_lerobot_eval_runs_our_env(stock_act_checkpoint, tmp_path, async_e
 
 def test_unknown_condition_is_refused_by_lerobot_eval(stock_act_checkpoint, tmp_path):
     out = run_cli(
-        "lerobot-eval", f"--policy.path={stock_act_checkpoint}", "--env.type=condground",
-        "--env.condition=object_color_7", "--eval.n_episodes=1", f"--output_dir={tmp_path}", check=False,
+        "lerobot-eval",
+        f"--policy.path={stock_act_checkpoint}",
+        "--env.type=condground",
+        "--env.condition=object_color_7",
+        "--eval.n_episodes=1",
+        f"--output_dir={tmp_path}",
+        check=False,
     )
     assert out.returncode != 0 and "Unknown condition 'object_color_7'" in out.stderr
 
@@ -64,11 +96,25 @@ def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("train_modified") / "run"
     tiny = [a.replace("--policy.type=act", "--policy.type=act_modified") for a in TINY_ACT]
     run_cli(
-        "lerobot-train", *tiny, "--policy.variant=full", "--policy.n_vae_encoder_layers=1",
-        "--dataset.repo_id=local/test_full_mixed", f"--dataset.root={recorded_dataset}", "--batch_size=2",
-        "--steps=3", "--save_freq=3", "--log_freq=1", "--num_workers=0", f"--output_dir={out}",
-        "--wandb.enable=false", "--env.type=condground", "--env.task=PickPlaceRandomBin-v0",
-        "--env.condition=full_mixed", "--env.episode_length=6", "--env_eval_freq=3", "--eval.n_episodes=1",
+        "lerobot-train",
+        *tiny,
+        "--policy.variant=full",
+        "--policy.n_vae_encoder_layers=1",
+        "--dataset.repo_id=local/test_full_mixed",
+        f"--dataset.root={recorded_dataset}",
+        "--batch_size=2",
+        "--steps=3",
+        "--save_freq=3",
+        "--log_freq=1",
+        "--num_workers=0",
+        f"--output_dir={out}",
+        "--wandb.enable=false",
+        "--env.type=condground",
+        "--env.task=PickPlaceRandomBin-v0",
+        "--env.condition=full_mixed",
+        "--env.episode_length=6",
+        "--env_eval_freq=3",
+        "--eval.n_episodes=1",
         "--eval.batch_size=1",
     )
     return out / "checkpoints" / "last" / "pretrained_model"
@@ -90,9 +136,15 @@ def test_act_modified_checkpoint_is_a_standard_lerobot_checkpoint(act_modified_c
 def test_stock_lerobot_eval_runs_act_modified(act_modified_checkpoint, tmp_path):
     out = tmp_path / "eval"
     run_cli(
-        "lerobot-eval", f"--policy.path={act_modified_checkpoint}", "--env.type=condground",
-        "--env.task=PickPlaceRandomBin-v0", "--env.condition=full_mixed", "--env.episode_length=12",
-        "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={out}",
+        "lerobot-eval",
+        f"--policy.path={act_modified_checkpoint}",
+        "--env.type=condground",
+        "--env.task=PickPlaceRandomBin-v0",
+        "--env.condition=full_mixed",
+        "--env.episode_length=12",
+        "--eval.n_episodes=2",
+        "--eval.batch_size=2",
+        f"--output_dir={out}",
     )
     info = read_json(out / "eval_info.json")
     assert info["overall"]["n_episodes"] == 2
@@ -101,8 +153,15 @@ def test_stock_lerobot_eval_runs_act_modified(act_modified_checkpoint, tmp_path)
 
 def test_act_modified_needs_prompts_from_the_env(act_modified_checkpoint, tmp_path):
     out = run_cli(
-        "lerobot-eval", f"--policy.path={act_modified_checkpoint}", "--env.type=condground",
-        "--env.prompts=false", "--env.episode_length=4", "--eval.n_episodes=1", "--eval.batch_size=1",
-        "--eval.use_async_envs=false", f"--output_dir={tmp_path}", check=False,
+        "lerobot-eval",
+        f"--policy.path={act_modified_checkpoint}",
+        "--env.type=condground",
+        "--env.prompts=false",
+        "--env.episode_length=4",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        "--eval.use_async_envs=false",
+        f"--output_dir={tmp_path}",
+        check=False,
     )
     assert out.returncode != 0 and "--env.prompts=true" in out.stdout + out.stderr

@@ -1,11 +1,10 @@
 import subprocess
-from pathlib import Path
 import sys
 from importlib.metadata import distribution
+from pathlib import Path
 
-from conftest import run_cli
-
-from lerobot_condground.results import read_table
+from helpers import run_cli
+from lerobot_condground.evaluation.results import read_table
 
 
 def test_distribution_name_keeps_underscores_for_lerobot_discovery():
@@ -46,13 +45,37 @@ def test_subpackages_map_to_the_top_level_pillars():
 
 def test_cli_help_lists_commands_and_flags():
     out = run_cli("condground", "--help").stdout
-    for command in ("record", "bench", "quickstart", "augment", "sweep", "probe", "diagnose", "attention", "report"):
+    for command in (
+        "record",
+        "bench",
+        "quickstart",
+        "augment",
+        "sweep",
+        "probe",
+        "diagnose",
+        "attention",
+        "report",
+    ):
         assert f"  {command} " in out, command
     flags = {
-        "record": ("--env.task", "--env.condition", "--dataset.repo_id", "--dataset.root", "--dataset.num_episodes"),
+        "record": (
+            "--env.task",
+            "--env.condition",
+            "--dataset.repo_id",
+            "--dataset.root",
+            "--dataset.num_episodes",
+        ),
         # The diagnosis flags other tools rely on.
-        "sweep": ("--policy.paths", "--env.task", "--sweep.conditions", "--eval.seeds", "--eval.n_episodes",
-                  "--output_dir", "--launcher", "--workers"),
+        "sweep": (
+            "--policy.paths",
+            "--env.task",
+            "--sweep.conditions",
+            "--eval.seeds",
+            "--eval.n_episodes",
+            "--output_dir",
+            "--launcher",
+            "--workers",
+        ),
         "diagnose": ("--policy.path", "--env.task", "--output_dir"),
         "probe": ("--policy.path", "--output_dir"),
         "attention": ("--policy.path", "--env.task", "--env.condition", "--output_dir"),
@@ -70,38 +93,75 @@ def test_example_runs(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     out = tmp_path / "frame.png"
-    proc = subprocess.run([sys.executable, str(root / "examples" / "run_expert.py"), "--out", str(out)],
-                          capture_output=True, text=True, check=True)
+    proc = subprocess.run(
+        [sys.executable, str(root / "examples" / "run_expert.py"), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert "stage reached: 3" in proc.stdout and "success: True" in proc.stdout
     assert cv2.imread(str(out)).shape == (240, 640, 3)
 
 
 def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
     out = run_cli(
-        "condground", "quickstart", f"--output_dir={tmp_path}", "--episodes_per_task=1", "--expert_episodes=1",
-        "--train.steps=2", "--train.batch_size=2", "--eval.episodes=1", "--eval.episode_length=10",
-        "--diagnosis.episodes=1", "--diagnosis.probe_episodes=1", "--diagnosis.pairs=1", "--diagnosis.frame_stride=8",
-        "--progress=false", timeout=900,
+        "condground",
+        "quickstart",
+        f"--output_dir={tmp_path}",
+        "--episodes_per_task=1",
+        "--expert_episodes=1",
+        "--train.steps=2",
+        "--train.batch_size=2",
+        "--eval.episodes=1",
+        "--eval.episode_length=10",
+        "--diagnosis.episodes=1",
+        "--diagnosis.probe_episodes=1",
+        "--diagnosis.pairs=1",
+        "--diagnosis.frame_stride=8",
+        "--progress=false",
+        timeout=900,
     ).stdout
     lines = out.splitlines()
     for policy in ("act_modified/full", "expert"):
         for condition in ("clean", "full_mixed"):
             assert any(line.split()[:2] == [policy, condition] for line in lines), out[-3000:]
-    assert (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "policy_preprocessor.json").exists()
+    assert (
+        tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "policy_preprocessor.json"
+    ).exists()
 
     # It ends with the diagnosis suite and its report; the stock CLI rebuilds the report from the outputs.
     diagnosis = tmp_path / "diagnosis"
     rows = read_table(diagnosis / "sweep" / "results.parquet")
     assert len(rows) == 2 * 4 and set(rows.policy_label) == {"act_modified/full", "expert"}
-    for name in ("diagnose/diagnostics.json", "probe/probe.json", "attention/attention.mp4", "report/report.html", "report/report.md"):
+    for name in (
+        "diagnose/diagnostics.json",
+        "probe/probe.json",
+        "attention/attention.mp4",
+        "report/report.html",
+        "report/report.md",
+    ):
         assert (diagnosis / name).exists(), name
     assert f"Report: {diagnosis / 'report' / 'report.html'}" in out
     dirs = [f"--input_dir={diagnosis / name}" for name in ("sweep", "diagnose", "probe", "attention")]
     rebuilt = run_cli("condground", "report", *dirs, f"--output={tmp_path / 'again.html'}")
     assert "report:" in rebuilt.stdout and "Table I" in (tmp_path / "again.html").read_text()
-    bad = run_cli("condground", "report", f"--input_dir={tmp_path / 'train'}", f"--output={tmp_path / 'x.html'}", check=False)
-    assert bad.returncode == 2 and bad.stderr.startswith("condground report:") and "Traceback" not in bad.stderr
+    bad = run_cli(
+        "condground",
+        "report",
+        f"--input_dir={tmp_path / 'train'}",
+        f"--output={tmp_path / 'x.html'}",
+        check=False,
+    )
+    assert (
+        bad.returncode == 2 and bad.stderr.startswith("condground report:") and "Traceback" not in bad.stderr
+    )
     checkpoint = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
-    bad = run_cli("condground", "attention", f"--policy.path={checkpoint}", "--env.condition=full_mix",
-                  f"--output_dir={tmp_path / 'att'}", check=False)
+    bad = run_cli(
+        "condground",
+        "attention",
+        f"--policy.path={checkpoint}",
+        "--env.condition=full_mix",
+        f"--output_dir={tmp_path / 'att'}",
+        check=False,
+    )
     assert bad.returncode == 2 and "full_mix" in bad.stderr and "Traceback" not in bad.stderr

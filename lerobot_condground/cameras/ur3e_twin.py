@@ -8,6 +8,19 @@ from lerobot.cameras import Camera
 
 from .config_ur3e_twin import TWIN_CAMERAS, UR3eTwinCameraConfig
 
+# The connected twins of this process: a ur3e robot with the sim backend adds itself on connect, so the
+# camera finds the scene it renders without importing the robot (cameras sit below robots).
+TWINS: list = []
+
+
+def active_twin():
+    if len(TWINS) != 1:
+        raise RuntimeError(
+            f"{len(TWINS)} ur3e twins are connected in this process; ur3e_twin cameras and the ur3e_expert "
+            "teleoperator need exactly one --robot.type=ur3e --robot.backend=sim robot, connected first"
+        )
+    return TWINS[0]
+
 
 class UR3eTwinCamera(Camera):
     def __init__(self, config: UR3eTwinCameraConfig):
@@ -26,13 +39,9 @@ class UR3eTwinCamera(Camera):
 
     @staticmethod
     def find_cameras() -> list[dict]:
-        from lerobot_condground.robots.sim_arm import _CONNECTED
-
-        return [{"name": cam, "type": "ur3e_twin"} for cam in TWIN_CAMERAS] if _CONNECTED else []
+        return [{"name": cam, "type": "ur3e_twin"} for cam in TWIN_CAMERAS] if TWINS else []
 
     def connect(self, warmup: bool = True) -> None:
-        from lerobot_condground.robots.sim_arm import active_twin
-
         self._twin = active_twin()
         if warmup:
             self.read()

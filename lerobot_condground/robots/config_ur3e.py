@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
 
-from lerobot_condground.segmenters import DEFAULT_SAM2_MODEL, SEGMENTERS
+from lerobot_condground.labelling.segmenters import DEFAULT_SAM2_MODEL, SEGMENTERS
 
 BACKENDS = ("rtde", "sim")
 GRIPPERS = ("robotiq", "digital_output", "none")
@@ -117,13 +117,17 @@ class UR3eConfig(RobotConfig):
         if self.backend == "sim" and not self.cameras:
             from lerobot_condground.cameras.config_ur3e_twin import UR3eTwinCameraConfig
 
-            self.cameras = {"top": UR3eTwinCameraConfig(camera="top", width=320, height=240, fps=int(self.control_hz))}
+            self.cameras = {
+                "top": UR3eTwinCameraConfig(camera="top", width=320, height=240, fps=int(self.control_hz))
+            }
         super().__post_init__()
         problems = []
         if self.backend not in BACKENDS:
             problems.append(f"backend={self.backend!r}; allowed: {', '.join(BACKENDS)}")
         if self.backend == "rtde" and not self.host:
-            problems.append("host is required with backend=rtde (the controller's IP address, e.g. --robot.host=192.168.1.10)")
+            problems.append(
+                "host is required with backend=rtde (the controller's IP address, e.g. --robot.host=192.168.1.10)"
+            )
         if self.gripper not in GRIPPERS:
             problems.append(f"gripper={self.gripper!r}; allowed: {', '.join(GRIPPERS)}")
         for name in ("joint_offsets", "joint_min", "joint_max", "max_joint_velocity"):
@@ -137,7 +141,9 @@ class UR3eConfig(RobotConfig):
             if any(lo >= hi for lo, hi in zip(self.joint_min, self.joint_max, strict=True)):
                 problems.append(f"joint_min={self.joint_min} must be below joint_max={self.joint_max}")
             if any(lo >= hi for lo, hi in zip(self.workspace_min, self.workspace_max, strict=True)):
-                problems.append(f"workspace_min={self.workspace_min} must be below workspace_max={self.workspace_max}")
+                problems.append(
+                    f"workspace_min={self.workspace_min} must be below workspace_max={self.workspace_max}"
+                )
             if any(v <= 0 for v in self.max_joint_velocity):
                 problems.append(f"max_joint_velocity={self.max_joint_velocity} must be positive")
         if not 0 < self.max_joint_step <= 0.5:
@@ -147,24 +153,34 @@ class UR3eConfig(RobotConfig):
         if self.backend == "sim" and self.servo_hz != 500:
             problems.append(f"servo_hz={self.servo_hz}; the twin runs its physics at 500 Hz")
         if not 0.03 <= self.servoj_lookahead_time <= 0.2:
-            problems.append(f"servoj_lookahead_time={self.servoj_lookahead_time}; allowed: 0.03..0.2 s (UR's range)")
+            problems.append(
+                f"servoj_lookahead_time={self.servoj_lookahead_time}; allowed: 0.03..0.2 s (UR's range)"
+            )
         if not 100 <= self.servoj_gain <= 2000:
             problems.append(f"servoj_gain={self.servoj_gain}; allowed: 100..2000 (UR's range)")
         if self.stall_periods < 1:
             problems.append(f"stall_periods={self.stall_periods}; allowed: >= 1")
         if self.prompts.segmenter not in (None, *PROMPT_SEGMENTERS):
-            problems.append(f"prompts.segmenter={self.prompts.segmenter!r}; allowed: {', '.join(PROMPT_SEGMENTERS)} (or unset)")
+            problems.append(
+                f"prompts.segmenter={self.prompts.segmenter!r}; allowed: {', '.join(PROMPT_SEGMENTERS)} (or unset)"
+            )
         elif self.prompts.segmenter == "privileged" and self.backend != "sim":
-            problems.append("prompts.segmenter=privileged reads the twin's ground truth; it needs backend=sim")
+            problems.append(
+                "prompts.segmenter=privileged reads the twin's ground truth; it needs backend=sim"
+            )
         elif self.prompts.segmenter in SEGMENTERS:
             if self.prompts.camera not in self.cameras:
-                problems.append(f"prompts.camera={self.prompts.camera!r} is not a camera of this robot; cameras: {', '.join(self.cameras) or 'none'}")
+                problems.append(
+                    f"prompts.camera={self.prompts.camera!r} is not a camera of this robot; cameras: {', '.join(self.cameras) or 'none'}"
+                )
             if not self.prompts.interactive and not (self.prompts.object and self.prompts.receptacle):
-                problems.append("prompts.object and prompts.receptacle (x,y or x0,y0,x1,y1) are needed unless prompts.interactive=true")
+                problems.append(
+                    "prompts.object and prompts.receptacle (x,y or x0,y0,x1,y1) are needed unless prompts.interactive=true"
+                )
         if problems:
             raise ValueError("Invalid ur3e robot config: " + "; ".join(problems))
         if self.backend == "sim":
-            from lerobot_condground.conditions import ConditionSpec, check_task
+            from lerobot_condground.core.conditions import ConditionSpec, check_task
 
             check_task(self.sim.task)
             ConditionSpec.parse(self.sim.condition)

@@ -13,7 +13,10 @@ import sys
 
 # (module, function) -> (local holding the loop's start time, whether that call records)
 EPISODE_LOOPS = {
-    ("lerobot.scripts.lerobot_record", "record_loop"): ("start_episode_t", lambda loc: loc.get("dataset") is not None),
+    ("lerobot.scripts.lerobot_record", "record_loop"): (
+        "start_episode_t",
+        lambda loc: loc.get("dataset") is not None,
+    ),
     ("lerobot.rollout.strategies.episodic", "_policy_loop"): ("start_t", lambda loc: True),
 }
 

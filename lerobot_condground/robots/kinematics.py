@@ -2,7 +2,7 @@
 
 The workspace check runs on every command, and the spatial teleoperator solves IK at its control
 rate, so this stays in numpy: no MuJoCo model, no robot connection. The simulated arm is built from
-the same table (`envs.robot`), so poses agree between the twin and the hardware, up to the twin's
+the same table (`core.ur3e`), so poses agree between the twin and the hardware, up to the twin's
 base being turned 180 deg about z in its world.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_condground.envs.robot import FLANGE_TO_TCP, UR3E_DH_A, UR3E_DH_ALPHA, UR3E_DH_D
+from lerobot_condground.core.ur3e import FLANGE_TO_TCP, UR3E_DH_A, UR3E_DH_ALPHA, UR3E_DH_D
 
 _D, _A, _ALPHA = np.array(UR3E_DH_D), np.array(UR3E_DH_A), np.array(UR3E_DH_ALPHA)
 
@@ -22,12 +22,14 @@ def forward(q, tcp_offset: float = FLANGE_TO_TCP) -> tuple[np.ndarray, np.ndarra
     for i in range(6):
         ct, st = np.cos(q[i]), np.sin(q[i])
         ca, sa = np.cos(_ALPHA[i]), np.sin(_ALPHA[i])
-        t = t @ np.array([
-            [ct, -st * ca, st * sa, _A[i] * ct],
-            [st, ct * ca, -ct * sa, _A[i] * st],
-            [0.0, sa, ca, _D[i]],
-            [0.0, 0.0, 0.0, 1.0],
-        ])
+        t = t @ np.array(
+            [
+                [ct, -st * ca, st * sa, _A[i] * ct],
+                [st, ct * ca, -ct * sa, _A[i] * st],
+                [0.0, sa, ca, _D[i]],
+                [0.0, 0.0, 0.0, 1.0],
+            ]
+        )
     return t[:3, 3] + t[:3, 2] * tcp_offset, t[:3, :3]
 
 

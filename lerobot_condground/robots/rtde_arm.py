@@ -12,6 +12,7 @@ closed), on SIGTERM; it ignores Ctrl-C so the parent's orderly disconnect is wha
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import signal
@@ -29,8 +30,10 @@ logger = logging.getLogger(__name__)
 
 DASHBOARD_PORT, RTDE_PORT = 29999, 30004
 _STATE_SIZE = 6 + 6 + 6  # q, qd, gripper, safety_mode, streaming, freedrive, stalls, time
-_SCRIPT_STOPPED = ("The UR control script stopped (a stop on the pendant, a safety stop, or another program); the "
-                   "arm no longer follows commands. Check the pendant, then reconnect.")
+_SCRIPT_STOPPED = (
+    "The UR control script stopped (a stop on the pendant, a safety stop, or another program); the "
+    "arm no longer follows commands. Check the pendant, then reconnect."
+)
 
 
 def probe(host: str, port: int, timeout: float) -> None:
@@ -84,7 +87,9 @@ class URBackend:
         if cfg["gripper"] == "robotiq":
             from .grippers import RobotiqSocketGripper
 
-            self.gripper = RobotiqSocketGripper(host, cfg["gripper_port"], cfg["gripper_speed"], cfg["gripper_force"])
+            self.gripper = RobotiqSocketGripper(
+                host, cfg["gripper_port"], cfg["gripper_speed"], cfg["gripper_force"]
+            )
             self.gripper.connect(activate=not cfg["dry_run"])
             self._gripper_closure = self.gripper.closure()  # the first observation is already right
             threading.Thread(target=self._gripper_io, name="robotiq", daemon=True).start()
@@ -114,8 +119,12 @@ class URBackend:
             self._gripper_closure = self.gripper.closure_from_bits(self.receive.getActualDigitalOutputBits())
         if not self.receive.isConnected():
             raise ArmFault(f"Lost the RTDE connection to {self.cfg['host']}; the controller stops the arm")
-        return (np.array(self.receive.getActualQ()), np.array(self.receive.getActualQd()),
-                self._gripper_closure, self.receive.getSafetyMode())
+        return (
+            np.array(self.receive.getActualQ()),
+            np.array(self.receive.getActualQd()),
+            self._gripper_closure,
+            self.receive.getSafetyMode(),
+        )
 
     def servo(self, q) -> None:
         if self.control is not None and not self.control.servoJ(
@@ -169,8 +178,16 @@ class URBackend:
 
 def _publish(shared, state: ArmState) -> None:
     with shared.get_lock():
-        shared[:] = [*state.q, *state.qd, state.gripper, state.safety_mode, state.streaming, state.freedrive,
-                     state.stalls, state.time]
+        shared[:] = [
+            *state.q,
+            *state.qd,
+            state.gripper,
+            state.safety_mode,
+            state.streaming,
+            state.freedrive,
+            state.stalls,
+            state.time,
+        ]
 
 
 def _exit(*_) -> None:
@@ -184,9 +201,13 @@ def _worker(cfg: dict, conn, shared) -> None:
     try:
         backend.connect()
         loop = ServoLoop(
-            backend, control_period=1 / cfg["control_hz"], servo_period=1 / cfg["servo_hz"],
-            max_joint_velocity=np.array(cfg["max_joint_velocity"]), joint_min=np.array(cfg["joint_min"]),
-            joint_max=np.array(cfg["joint_max"]), stall_periods=cfg["stall_periods"],
+            backend,
+            control_period=1 / cfg["control_hz"],
+            servo_period=1 / cfg["servo_hz"],
+            max_joint_velocity=np.array(cfg["max_joint_velocity"]),
+            joint_min=np.array(cfg["joint_min"]),
+            joint_max=np.array(cfg["joint_max"]),
+            stall_periods=cfg["stall_periods"],
         )
         _publish(shared, loop.state)
         conn.send(("ready", None))
@@ -211,10 +232,8 @@ def _worker(cfg: dict, conn, shared) -> None:
     except ArmFault as exc:
         conn.send(("fault", str(exc)))
     except BaseException as exc:
-        try:
+        with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
-        except OSError:
-            pass
     finally:
         backend.close()
 
@@ -234,9 +253,24 @@ class RTDEArm:
 
     def _worker_config(self) -> dict:
         cfg = asdict(self.config)
-        keep = ("host", "servo_hz", "control_hz", "servoj_lookahead_time", "servoj_gain", "gripper", "gripper_port",
-                "gripper_speed", "gripper_force", "gripper_output", "expected_model", "dry_run", "joint_min",
-                "joint_max", "max_joint_velocity", "stall_periods")
+        keep = (
+            "host",
+            "servo_hz",
+            "control_hz",
+            "servoj_lookahead_time",
+            "servoj_gain",
+            "gripper",
+            "gripper_port",
+            "gripper_speed",
+            "gripper_force",
+            "gripper_output",
+            "expected_model",
+            "dry_run",
+            "joint_min",
+            "joint_max",
+            "max_joint_velocity",
+            "stall_periods",
+        )
         return {k: cfg[k] for k in keep}
 
     def connect(self) -> None:
@@ -246,8 +280,12 @@ class RTDEArm:
         ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited threads or CUDA state
         self.conn, child = ctx.Pipe()
         self.shared = ctx.Array("d", _STATE_SIZE)
-        self.process = ctx.Process(target=_worker, args=(self._worker_config(), child, self.shared),
-                                   name=f"ur3e-arm-worker-{cfg.host}", daemon=True)
+        self.process = ctx.Process(
+            target=_worker,
+            args=(self._worker_config(), child, self.shared),
+            name=f"ur3e-arm-worker-{cfg.host}",
+            daemon=True,
+        )
         self.process.start()
         child.close()
         deadline = time.monotonic() + cfg.connect_timeout_s
@@ -264,7 +302,7 @@ class RTDEArm:
             self._kill()
             raise ConnectionError(
                 "The ur3e worker process exited before connecting. In a script of your own, start the robot under "
-                "`if __name__ == \"__main__\":`: the worker is spawned, and spawning re-runs the main module."
+                '`if __name__ == "__main__":`: the worker is spawned, and spawning re-runs the main module.'
             ) from None
         if kind != "ready":
             self._kill()
@@ -283,8 +321,16 @@ class RTDEArm:
         self._check()
         with self.shared.get_lock():
             v = np.array(self.shared[:])
-        return ArmState(q=v[0:6], qd=v[6:12], gripper=float(v[12]), safety_mode=int(v[13]), streaming=bool(v[14]),
-                        freedrive=bool(v[15]), stalls=int(v[16]), time=float(v[17]))
+        return ArmState(
+            q=v[0:6],
+            qd=v[6:12],
+            gripper=float(v[12]),
+            safety_mode=int(v[13]),
+            streaming=bool(v[14]),
+            freedrive=bool(v[15]),
+            stalls=int(v[16]),
+            time=float(v[17]),
+        )
 
     def _send(self, *msg) -> None:
         self._check()

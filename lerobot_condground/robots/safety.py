@@ -17,15 +17,24 @@ from . import kinematics
 
 # RTDE safety_mode values (UR's SafetyMode enum) that stop the arm and need a person.
 SAFETY_MODES = {
-    1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery", 5: "safeguard stop",
-    6: "system emergency stop", 7: "robot emergency stop", 8: "violation", 9: "fault",
-    10: "validate joint id", 11: "undefined", 12: "automatic mode safeguard stop",
+    1: "normal",
+    2: "reduced",
+    3: "protective stop",
+    4: "recovery",
+    5: "safeguard stop",
+    6: "system emergency stop",
+    7: "robot emergency stop",
+    8: "violation",
+    9: "fault",
+    10: "validate joint id",
+    11: "undefined",
+    12: "automatic mode safeguard stop",
     13: "system three position enabling stop",
 }
 MOVABLE_SAFETY_MODES = (1, 2)
 
 
-class ArmFault(RuntimeError):
+class ArmFault(RuntimeError):  # noqa: N818  (the arm's own word: a UR fault)
     """The arm stopped itself (protective or emergency stop, fault) or lost its controller. It is never
     resumed silently: a person clears the cause on the teach pendant, then reconnects."""
 
@@ -63,7 +72,9 @@ class SafetyLimits:
 
     def _box_distance(self, q) -> float:
         pos, _ = kinematics.forward(q)
-        return float(np.linalg.norm(np.maximum(self.workspace_min - pos, 0) + np.maximum(pos - self.workspace_max, 0)))
+        return float(
+            np.linalg.norm(np.maximum(self.workspace_min - pos, 0) + np.maximum(pos - self.workspace_max, 0))
+        )
 
     def clip(self, target, previous) -> np.ndarray:
         """The joint target actually sent, given the last accepted one."""

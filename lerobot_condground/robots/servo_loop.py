@@ -42,11 +42,9 @@ class ArmBackend(Protocol):
     def servo_stop(self) -> None:  # decelerate to standstill and leave servo mode
         ...
 
-    def set_gripper(self, closure: float) -> None:
-        ...
+    def set_gripper(self, closure: float) -> None: ...
 
-    def freedrive(self, on: bool) -> None:
-        ...
+    def freedrive(self, on: bool) -> None: ...
 
 
 @dataclass
@@ -104,9 +102,14 @@ class ServoLoop:
     def tick(self, now: float) -> ArmState:
         q, qd, gripper, safety_mode = self.backend.read()
         self.state = ArmState(
-            q=np.asarray(q, dtype=float), qd=np.asarray(qd, dtype=float), gripper=float(gripper),
-            safety_mode=int(safety_mode), streaming=self.streaming, freedrive=self._freedrive,
-            stalls=self._stalls, time=now,
+            q=np.asarray(q, dtype=float),
+            qd=np.asarray(qd, dtype=float),
+            gripper=float(gripper),
+            safety_mode=int(safety_mode),
+            streaming=self.streaming,
+            freedrive=self._freedrive,
+            stalls=self._stalls,
+            time=now,
         )
         try:
             check_safety_mode(safety_mode)
@@ -123,7 +126,10 @@ class ServoLoop:
         s = min(max((now - self._t_command) / self.control_period, 0.0), 1.0)
         goal = self._from + s * (self._to - self._from)
         step_max = self.max_joint_velocity * self.servo_period
-        self._setpoint = np.clip(self._setpoint + np.clip(goal - self._setpoint, -step_max, step_max),
-                                 self.joint_min, self.joint_max)
+        self._setpoint = np.clip(
+            self._setpoint + np.clip(goal - self._setpoint, -step_max, step_max),
+            self.joint_min,
+            self.joint_max,
+        )
         self.backend.servo(self._setpoint)
         return self.state

@@ -14,6 +14,7 @@ import time
 import mujoco
 import numpy as np
 
+from lerobot_condground.cameras.ur3e_twin import TWINS
 from lerobot_condground.envs import robot as sim_robot
 from lerobot_condground.envs.scene import PHYSICS_DT
 
@@ -21,18 +22,7 @@ from .servo_loop import ServoLoop
 
 logger = logging.getLogger(__name__)
 
-_CONNECTED: list[SimArm] = []
 TRACKER_EVERY = 5
-
-
-def active_twin() -> SimArm:
-    """The connected twin of this process (cameras and the expert teleoperator attach to it)."""
-    if len(_CONNECTED) != 1:
-        raise RuntimeError(
-            f"{len(_CONNECTED)} ur3e twins are connected in this process; ur3e_twin cameras and the ur3e_expert "
-            "teleoperator need exactly one --robot.type=ur3e --robot.backend=sim robot, connected first"
-        )
-    return _CONNECTED[0]
 
 
 class TwinBackend:
@@ -61,7 +51,9 @@ class TwinBackend:
 
     def freedrive(self, on):
         if on:
-            raise ValueError("Freedrive (teach mode) needs the real arm (--robot.backend=rtde); the twin has no hand to move it")
+            raise ValueError(
+                "Freedrive (teach mode) needs the real arm (--robot.backend=rtde); the twin has no hand to move it"
+            )
 
 
 class SimArm:
@@ -86,14 +78,18 @@ class SimArm:
 
         cfg = self.config
         self.env = PickPlaceEnv(
-            task=cfg.sim.task, condition=cfg.sim.condition, counterbalanced=cfg.sim.counterbalanced,
-            obs_type="agent_pos", prompts=True, fps=int(cfg.control_hz),
+            task=cfg.sim.task,
+            condition=cfg.sim.condition,
+            counterbalanced=cfg.sim.counterbalanced,
+            obs_type="agent_pos",
+            prompts=True,
+            fps=int(cfg.control_hz),
         )
         self.backend = TwinBackend(self.env)
         self.clock = 0.0
         self._ticks = 0
         self.reset_scene()
-        _CONNECTED.append(self)
+        TWINS.append(self)
         if cfg.sim.realtime:
             self._running = True
             self._thread = threading.Thread(target=self._run_realtime, name="ur3e-twin-physics", daemon=True)
@@ -109,9 +105,13 @@ class SimArm:
                 self.env.data.ctrl[:6] = self.home
                 mujoco.mj_forward(self.env.model, self.env.data)
             self.loop = ServoLoop(
-                self.backend, control_period=1 / self.config.control_hz, servo_period=PHYSICS_DT,
-                max_joint_velocity=np.array(self.config.max_joint_velocity), joint_min=np.array(self.config.joint_min),
-                joint_max=np.array(self.config.joint_max), stall_periods=self.config.stall_periods,
+                self.backend,
+                control_period=1 / self.config.control_hz,
+                servo_period=PHYSICS_DT,
+                max_joint_velocity=np.array(self.config.max_joint_velocity),
+                joint_min=np.array(self.config.joint_min),
+                joint_max=np.array(self.config.joint_max),
+                stall_periods=self.config.stall_periods,
             )
             self.loop.tick(self.clock)
             self._dirty = False
@@ -178,9 +178,8 @@ class SimArm:
             self._running = False
             if self._thread is not None:
                 self._thread.join(timeout=2)
-            if self in _CONNECTED:
-                _CONNECTED.remove(self)
+            if self in TWINS:
+                TWINS.remove(self)
             if self.env is not None:
                 self.env.close()
             self.env = None
-

@@ -19,7 +19,8 @@ import numpy as np
 from lerobot.cameras.utils import make_cameras_from_configs
 from lerobot.robots.robot import Robot
 
-from lerobot_condground.envs.robot import HOME_QPOS, MOTOR_NAMES
+from lerobot_condground.core.labels import PROMPT_SIZE
+from lerobot_condground.core.ur3e import HOME_QPOS, MOTOR_NAMES
 
 from .config_ur3e import UR3eConfig
 from .episodes import recording_episode
@@ -28,7 +29,6 @@ from .safety import SafetyLimits
 logger = logging.getLogger(__name__)
 
 PROMPT_KEYS = ("prompt_object", "prompt_receptacle")
-PROMPT_SIZE = 64  # the simulation's prompt crop side (envs.pickplace_env.PROMPT_SIZE)
 HOMING_SPEED = 0.5  # rad/s of the fastest joint while moving home
 _CONNECTED: list[UR3e] = []
 
@@ -56,8 +56,10 @@ class UR3e(Robot):
         self.arm = None
         self.offsets = np.asarray(config.joint_offsets, dtype=float)
         self.safety = SafetyLimits(
-            joint_min=np.asarray(config.joint_min, float), joint_max=np.asarray(config.joint_max, float),
-            max_joint_step=config.max_joint_step, workspace_min=np.asarray(config.workspace_min, float),
+            joint_min=np.asarray(config.joint_min, float),
+            joint_max=np.asarray(config.joint_max, float),
+            max_joint_step=config.max_joint_step,
+            workspace_min=np.asarray(config.workspace_min, float),
             workspace_max=np.asarray(config.workspace_max, float),
         )
         self.home = np.asarray(self.calibration.get("home", HOME_QPOS), dtype=float)
@@ -160,15 +162,19 @@ class UR3e(Robot):
         deadline = None
         for k in itertools.count(1):
             t0 = time.perf_counter()
-            self.send_action(dict(zip(MOTOR_NAMES, [*(start + (q - start) * min(k / steps, 1.0)), gripper], strict=True)))
+            self.send_action(
+                dict(zip(MOTOR_NAMES, [*(start + (q - start) * min(k / steps, 1.0)), gripper], strict=True))
+            )
             if k >= steps:
                 deadline = deadline or t0 + settle_s
                 error = np.abs(self.arm.state().q + self.offsets - q).max()
                 if error < tolerance:
                     return
                 if t0 > deadline:
-                    raise RuntimeError(f"The arm did not reach {np.round(q, 3).tolist()} within {settle_s} s "
-                                       f"(still {error:.3f} rad away); is something in its way?")
+                    raise RuntimeError(
+                        f"The arm did not reach {np.round(q, 3).tolist()} within {settle_s} s "
+                        f"(still {error:.3f} rad away); is something in its way?"
+                    )
             time.sleep(max(0.0, 1 / self.config.control_hz - (time.perf_counter() - t0)))
 
     def disconnect(self) -> None:
@@ -188,8 +194,8 @@ class UR3e(Robot):
         cfg = self.config.prompts
         if cfg.segmenter in (None, "privileged"):
             return
-        from lerobot_condground.prompt_tracker import PromptTracker
-        from lerobot_condground.segmenters import make_segmenter, parse_prompt
+        from lerobot_condground.labelling.prompt_tracker import PromptTracker
+        from lerobot_condground.labelling.segmenters import make_segmenter, parse_prompt
 
         if not cfg.interactive:
             cam = self.config.cameras[cfg.camera]
@@ -212,13 +218,16 @@ class UR3e(Robot):
             if self._prompt_crops is None:
                 frame = frames[cfg.camera]
                 if cfg.interactive:
-                    from lerobot_condground.prompt_tracker import annotate_interactively
+                    from lerobot_condground.labelling.prompt_tracker import annotate_interactively
 
                     object_prompt, receptacle_prompt = annotate_interactively(frame)
                 else:
                     object_prompt, receptacle_prompt = cfg.object, cfg.receptacle
                 result = self._prompts.start(frame, object_prompt, receptacle_prompt)
-                self._prompt_crops = {"prompt_object": result.object_crop, "prompt_receptacle": result.receptacle_crop}
+                self._prompt_crops = {
+                    "prompt_object": result.object_crop,
+                    "prompt_receptacle": result.receptacle_crop,
+                }
             crops = self._prompt_crops
         return {key: crops[key].copy() for key in PROMPT_KEYS}
 

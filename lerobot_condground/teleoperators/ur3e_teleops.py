@@ -9,7 +9,7 @@ import queue
 import numpy as np
 from lerobot.teleoperators.teleoperator import Teleoperator
 
-from lerobot_condground.envs.robot import MOTOR_NAMES
+from lerobot_condground.core.ur3e import MOTOR_NAMES
 
 from .config_ur3e_teleops import UR3eExpertConfig, UR3eFreedriveConfig, UR3eKeyboardConfig
 
@@ -112,8 +112,11 @@ class UR3eFreedrive(_UR3eTeleop):
 
     def _attached(self) -> None:
         self.robot.arm.freedrive(True)
-        print("ur3e_freedrive: the arm is in freedrive; guide it by hand. "
-              f"Key {self.config.gripper_key!r} toggles the gripper.", flush=True)
+        print(
+            "ur3e_freedrive: the arm is in freedrive; guide it by hand. "
+            f"Key {self.config.gripper_key!r} toggles the gripper.",
+            flush=True,
+        )
 
     def get_action(self) -> dict[str, float]:
         robot = self._attach()

@@ -21,7 +21,7 @@ from lerobot.configs.types import FeatureType
 from lerobot.policies.act.configuration_act import ACTConfig
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
-from lerobot_condground.labels import (
+from lerobot_condground.core.labels import (
     LABEL_KEYS,
     OBS_PHASE,
     OBS_PROMPT_OBJECT,
@@ -29,13 +29,16 @@ from lerobot_condground.labels import (
     OBS_SEGMENTATION,
     PROMPT_CAMERA_KEYS,
 )
+from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
 
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
 VARIANTS: dict[str, dict[str, bool]] = {
     "standard": dict.fromkeys(COMPONENTS, False),
     "augmentation": {**dict.fromkeys(COMPONENTS, False), "use_copy_paste": True},
     "augmentation_attention": {
-        **dict.fromkeys(COMPONENTS, False), "use_copy_paste": True, "use_attention_loss": True,
+        **dict.fromkeys(COMPONENTS, False),
+        "use_copy_paste": True,
+        "use_attention_loss": True,
     },
     "full": dict.fromkeys(COMPONENTS, True),
 }
@@ -82,11 +85,11 @@ class ACTModifiedConfig(ACTConfig):
 
     # Copy-paste distractor augmentation (a train-only preprocessor step; saved with the checkpoint,
     # so changing these for a loaded checkpoint has no effect on its saved step).
-    copy_paste_prob: float = 0.8
-    copy_paste_min_count: int = 1
-    copy_paste_max_count: int = 4
-    copy_paste_max_occlusion: float = 0.1
-    copy_paste_seed: int = 0
+    copy_paste_prob: float = CopyPasteParams.prob
+    copy_paste_min_count: int = CopyPasteParams.min_count
+    copy_paste_max_count: int = CopyPasteParams.max_count
+    copy_paste_max_occlusion: float = CopyPasteParams.max_occlusion
+    copy_paste_seed: int = CopyPasteParams.seed
 
     # Warm start: a stock `act` (or `act_modified`) checkpoint, local directory or hub id, whose
     # weights initialize the shared ACT parameters; the new heads start fresh.
@@ -118,8 +121,6 @@ class ACTModifiedConfig(ACTConfig):
             self.make_copy_paste_step()  # validates the copy_paste_* values now, at parse time
 
     def make_copy_paste_step(self):
-        from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep
-
         return CopyPasteDistractorStep(
             camera_key=self.attention_camera or f"{OBS_IMAGES}.top",
             prob=self.copy_paste_prob,
@@ -139,8 +140,14 @@ class ACTModifiedConfig(ACTConfig):
         missing = [key for key in self.needed_label_keys() if key not in self.label_keys]
         if missing:
             fallback = next(
-                name for name in reversed(VARIANTS)
-                if all(key in self.label_keys for c, on in VARIANTS[name].items() if on for key in COMPONENT_NEEDS[c])
+                name
+                for name in reversed(VARIANTS)
+                if all(
+                    key in self.label_keys
+                    for c, on in VARIANTS[name].items()
+                    if on
+                    for key in COMPONENT_NEEDS[c]
+                )
             )
             switches = ", ".join(f"{c}={getattr(self, c)}" for c in COMPONENTS)
             raise ValueError(
@@ -150,7 +157,9 @@ class ACTModifiedConfig(ACTConfig):
         super().validate_features()
         if self.attention_camera is None and self.image_features:
             self.attention_camera = next(iter(self.image_features))
-        if (self.use_attention_loss or self.use_copy_paste) and self.attention_camera not in self.image_features:
+        if (
+            self.use_attention_loss or self.use_copy_paste
+        ) and self.attention_camera not in self.image_features:
             raise ValueError(
                 f"attention_camera={self.attention_camera!r} is not a camera of the policy; allowed: "
                 f"{', '.join(self.image_features)}"
@@ -162,7 +171,10 @@ class ACTModifiedConfig(ACTConfig):
         self.label_keys = [key for key in LABEL_KEYS if key in self.input_features]
         for key in list(self.input_features):
             feature = self.input_features[key]
-            is_camera = (feature.type is FeatureType.VISUAL and key.startswith(f"{OBS_IMAGES}.")
-                         and key not in PROMPT_CAMERA_KEYS)
+            is_camera = (
+                feature.type is FeatureType.VISUAL
+                and key.startswith(f"{OBS_IMAGES}.")
+                and key not in PROMPT_CAMERA_KEYS
+            )
             if key not in (OBS_STATE, OBS_ENV_STATE) and not is_camera:
                 del self.input_features[key]

@@ -27,13 +27,18 @@ from pathlib import Path
 import einops
 import torch
 import torch.nn.functional as F  # noqa: N812
-from torch import Tensor, nn
-
 from lerobot.policies.act.modeling_act import ACT, ACTPolicy, ACTTemporalEnsembler
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from torch import Tensor, nn
 
-from lerobot_condground.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION, phase_masks
+from lerobot_condground.core.labels import (
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+    phase_masks,
+)
 
 from .configuration_act_modified import ACTModifiedConfig
 
@@ -83,14 +88,18 @@ class ACTModified(ACT):
             pooled = self.encoder_img_feat_input_proj.in_channels * len(config.image_features)
             state = config.robot_state_feature.shape[0] if config.robot_state_feature else 0
             self.phase_head = nn.Sequential(
-                nn.Linear(pooled + state, config.phase_head_dim), nn.ReLU(), nn.Linear(config.phase_head_dim, 2)
+                nn.Linear(pooled + state, config.phase_head_dim),
+                nn.ReLU(),
+                nn.Linear(config.phase_head_dim, 2),
             )
         self._prompt_cache: tuple[Tensor, Tensor] | None = None
         self.register_load_state_dict_pre_hook(lambda module, *_: setattr(module, "_prompt_cache", None))
         if config.use_prompts:
             self.prompt_pos_embed = nn.Embedding(1, dim)
             self.prompt_kind_embed = nn.Embedding(2, dim)  # object or receptacle crop
-            self.register_buffer("prompt_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+            self.register_buffer(
+                "prompt_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
+            )
             self.register_buffer("prompt_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         if config.use_attention_loss:
             stock = self.decoder.layers[-1].multihead_attn
@@ -147,7 +156,9 @@ class ACTModified(ACT):
         )
         try:
             decoder_out = self.decoder(
-                decoder_in, encoder_out, encoder_pos_embed=pos_embed,
+                decoder_in,
+                encoder_out,
+                encoder_pos_embed=pos_embed,
                 decoder_pos_embed=self.decoder_pos_embed.weight.unsqueeze(1),
             )
         finally:
@@ -159,7 +170,9 @@ class ACTModified(ACT):
             h, w = feature_maps[0].shape[-2:]
             camera = list(cfg.image_features).index(cfg.attention_camera)
             start = n_1d_tokens + camera * h * w
-            attention = cross_attention.head_attention(cfg.attention_head)[:, :, start : start + h * w].mean(1)
+            attention = cross_attention.head_attention(cfg.attention_head)[:, :, start : start + h * w].mean(
+                1
+            )
             aux["attention"] = (attention / attention.sum(-1, keepdim=True)).view(batch_size, h, w)
         return actions, (mu, log_sigma_x2), aux
 
@@ -167,7 +180,9 @@ class ACTModified(ACT):
         """ACT's CVAE: the posterior from the action chunk in training, z = 0 at inference."""
         cfg = self.config
         if not (cfg.use_vae and ACTION in batch and self.training):
-            latent = torch.zeros([batch_size, cfg.latent_dim], dtype=torch.float32).to(batch[OBS_STATE].device)
+            latent = torch.zeros([batch_size, cfg.latent_dim], dtype=torch.float32).to(
+                batch[OBS_STATE].device
+            )
             return None, None, latent
         cls_embed = einops.repeat(self.vae_encoder_cls_embed.weight, "1 d -> b 1 d", b=batch_size)
         action_embed = self.vae_encoder_action_input_proj(batch[ACTION])
@@ -179,7 +194,9 @@ class ACTModified(ACT):
         cls_joint_is_pad = torch.full((batch_size, len(inputs) - 1), False, device=batch[OBS_STATE].device)
         key_padding_mask = torch.cat([cls_joint_is_pad, batch["action_is_pad"]], axis=1)
         cls_token_out = self.vae_encoder(
-            vae_encoder_input.permute(1, 0, 2), pos_embed=pos_embed.permute(1, 0, 2), key_padding_mask=key_padding_mask
+            vae_encoder_input.permute(1, 0, 2),
+            pos_embed=pos_embed.permute(1, 0, 2),
+            key_padding_mask=key_padding_mask,
         )[0]
         latent_pdf_params = self.vae_encoder_latent_output_proj(cls_token_out)
         mu = latent_pdf_params[:, : cfg.latent_dim]
@@ -268,7 +285,11 @@ class ACTModifiedPolicy(ACTPolicy):
         from safetensors.torch import load_file
 
         path = Path(source)
-        weights = path / "model.safetensors" if path.is_dir() else Path(hf_hub_download(source, "model.safetensors"))
+        weights = (
+            path / "model.safetensors"
+            if path.is_dir()
+            else Path(hf_hub_download(source, "model.safetensors"))
+        )
         try:
             missing, unexpected = self.load_state_dict(load_file(str(weights)), strict=False)
         except RuntimeError as e:

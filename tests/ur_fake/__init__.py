@@ -22,6 +22,7 @@ process that makes them, so a fake living in the test process would stall under 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -30,19 +31,42 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-from .controller import (CONTROL_PORT, DASHBOARD_PORT, DEFAULT_MODES, GRIPPER_PORT, RTDE_PORT, SCRIPT_PORT,
-                         SERVER_MODES, SERVERS, forward_kinematics)
+from .arm import forward_kinematics
+from .servers import (
+    CONTROL_PORT,
+    DASHBOARD_PORT,
+    DEFAULT_MODES,
+    GRIPPER_PORT,
+    RTDE_PORT,
+    SCRIPT_PORT,
+    SERVER_MODES,
+    SERVERS,
+)
 
 CONTROLLER_SCRIPT = Path(__file__).with_name("controller.py")
-PORTS = {"rtde": RTDE_PORT, "dashboard": DASHBOARD_PORT, "gripper": GRIPPER_PORT, "script": SCRIPT_PORT,
-         "control": CONTROL_PORT}
+PORTS = {
+    "rtde": RTDE_PORT,
+    "dashboard": DASHBOARD_PORT,
+    "gripper": GRIPPER_PORT,
+    "script": SCRIPT_PORT,
+    "control": CONTROL_PORT,
+}
 DEFAULT_SERVERS = tuple(s for s in SERVERS if DEFAULT_MODES[s] != "off")
 
-__all__ = ["FakeController", "FakeControllerError", "start_fake_controller", "free_loopback_host",
-           "forward_kinematics", "PORTS", "SERVERS", "SERVER_MODES"]
+__all__ = [
+    "FakeController",
+    "FakeControllerError",
+    "start_fake_controller",
+    "free_loopback_host",
+    "forward_kinematics",
+    "PORTS",
+    "SERVERS",
+    "SERVER_MODES",
+]
 
 
 class FakeControllerError(RuntimeError):
@@ -112,7 +136,7 @@ class FakeController:
         return out
 
     def set(self, **state) -> None:
-        """Changes the robot's state, e.g. ``set(safety_mode=3)``, ``set(gripper={"object_position": 120})``."""
+        """Changes the robot's state: ``set(safety_mode=3)``, ``set(gripper={"object_position": 120})``."""
         self.command("set", state)
 
     def state(self) -> dict:
@@ -130,7 +154,9 @@ class FakeController:
     def clear_logs(self) -> None:
         self.command("clear")
 
-    def wait_for(self, predicate: Callable[[dict], bool], timeout: float = 2.0, interval: float = 0.01) -> dict:
+    def wait_for(
+        self, predicate: Callable[[dict], bool], timeout: float = 2.0, interval: float = 0.01
+    ) -> dict:
         """Polls ``state()`` until ``predicate(state)`` holds; returns that state or raises TimeoutError."""
         deadline = time.monotonic() + timeout
         while True:
@@ -144,10 +170,8 @@ class FakeController:
     # ---- lifecycle -------------------------------------------------------------------------------
     def stop(self, timeout: float = 3.0) -> None:
         if self.proc.poll() is None:
-            try:
+            with contextlib.suppress(OSError, FakeControllerError, ValueError):
                 self.command("quit", timeout=1.0)
-            except (OSError, FakeControllerError, ValueError):
-                pass
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -160,7 +184,7 @@ class FakeController:
             if stream is not None:
                 stream.close()
 
-    def __enter__(self) -> "FakeController":
+    def __enter__(self) -> FakeController:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -170,9 +194,16 @@ class FakeController:
         return f"FakeController(host={self.host!r}, pid={self.proc.pid})"
 
 
-def start_fake_controller(host: str | None = None, *, servers=DEFAULT_SERVERS, modes: dict[str, str] | None = None,
-                          startup_timeout: float = 10.0, verbose: bool = False, extra_args=(),
-                          **initial_state) -> FakeController:
+def start_fake_controller(
+    host: str | None = None,
+    *,
+    servers=DEFAULT_SERVERS,
+    modes: dict[str, str] | None = None,
+    startup_timeout: float = 10.0,
+    verbose: bool = False,
+    extra_args=(),
+    **initial_state,
+) -> FakeController:
     """Starts the fake on ``host`` (None: a free loopback address, retried on a lost race).
 
     ``servers``: which of rtde/dashboard/gripper/script listen (the others refuse connections; the realtime
@@ -185,15 +216,27 @@ def start_fake_controller(host: str | None = None, *, servers=DEFAULT_SERVERS, m
     last_error = ""
     for _ in range(attempts):
         h = host or free_loopback_host()
-        cmd = [sys.executable, str(CONTROLLER_SCRIPT), "--host", h, "--exit-with-parent",
-               "--state", json.dumps(initial_state)]
+        cmd = [
+            sys.executable,
+            str(CONTROLLER_SCRIPT),
+            "--host",
+            h,
+            "--exit-with-parent",
+            "--state",
+            json.dumps(initial_state),
+        ]
         cmd += [f"--no-{s}" for s in SERVERS if s not in servers]
         cmd += [f"--mode={s}=serve" for s in servers if DEFAULT_MODES[s] == "off"]
         cmd += [f"--mode={s}={m}" for s, m in (modes or {}).items()]
         cmd += ["--verbose"] if verbose else []
         cmd += list(extra_args)
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                stderr=None if verbose else subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=None if verbose else subprocess.PIPE,
+            text=True,
+        )
         ready = _wait_ready(proc, startup_timeout)
         if ready is not None:
             fake = FakeController(h, proc, ready["ports"])
@@ -214,7 +257,7 @@ def _wait_ready(proc: subprocess.Popen, timeout: float) -> dict | None:
     def read() -> None:
         for line in proc.stdout:
             if line.startswith("READY "):
-                result[0] = json.loads(line[len("READY "):])
+                result[0] = json.loads(line[len("READY ") :])
                 return
             if line.startswith("FAILED"):
                 return

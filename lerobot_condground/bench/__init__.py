@@ -1,0 +1,1 @@
+"""Throughput benchmarks: simulation, recording, policies, sweeps, prompt tracking."""

@@ -1,0 +1,76 @@
+"""Config groups every command shares, defined once: a checkpoint reference, an evaluation env, a dataset.
+
+Commands compose them as `--policy.*`, `--env.*`, `--dataset.*` / `--output.*` (LeRobot's flag style).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass
+class PolicyRefConfig:
+    # A LeRobot checkpoint: a pretrained_model directory or a hub id (offline: from the cache).
+    # `expert` is the scripted expert where a command can evaluate it (sweep).
+    path: str | None = None
+    # Several checkpoints, one per training seed, separated by commas (sweep).
+    paths: str | None = None
+    # What tables call the policy (default: its type, and the variant for act_modified).
+    label: str | None = None
+    # cpu, cuda, mps, xpu; default: the best one here (LeRobot's auto_select_torch_device).
+    device: str | None = None
+
+    def checkpoints(self) -> list[str]:
+        """Every checkpoint named by --policy.path and --policy.paths, in order."""
+        named = [self.path or ""] + (self.paths or "").split(",")
+        return [p.strip() for p in named if p.strip()]
+
+    def single(self) -> str:
+        """The one checkpoint of a command that reads one."""
+        checkpoints = self.checkpoints()
+        if len(checkpoints) != 1:
+            raise ValueError(
+                f"this command reads one checkpoint; got {len(checkpoints)} ({', '.join(checkpoints) or 'none'}): "
+                "give it as --policy.path=DIR_OR_HUB_ID"
+            )
+        return checkpoints[0]
+
+
+@dataclass
+class EvalEnvConfig:
+    task: str = "PickPlaceRandomBin-v0"
+    # The scene's condition, for commands that run one (diagnose: the reference of the matched pairs;
+    # attention: the scene). Sweeps take theirs from --sweep.conditions, the probe from its role and match.
+    condition: str | None = None
+    counterbalanced: bool = False
+    # Default: each checkpoint's own camera size.
+    observation_height: int | None = None
+    observation_width: int | None = None
+    episode_length: int = 300
+    fps: int = 20
+
+
+@dataclass
+class DatasetRefConfig:
+    # Dataset id; the hub repo id when one is pushed or pulled.
+    repo_id: str | None = None
+    # Local directory of the dataset (default: $HF_LEROBOT_HOME/<repo_id>).
+    root: str | None = None
+
+    def path(self) -> Path:
+        if self.root:
+            return Path(self.root)
+        if not self.repo_id:
+            raise ValueError("a dataset needs --dataset.repo_id or --dataset.root")
+        from lerobot.utils.constants import HF_LEROBOT_HOME
+
+        return HF_LEROBOT_HOME / self.repo_id
+
+
+@dataclass
+class DatasetOutputConfig(DatasetRefConfig):
+    # Encode camera frames as video (true) or PNG images (false); default: as the command says.
+    video: bool | None = None
+    push_to_hub: bool = False
+    private: bool = False

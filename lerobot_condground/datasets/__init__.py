@@ -1,0 +1,1 @@
+"""Demonstration datasets: recording the scripted expert, copy-paste augmentation, dataset provenance."""

@@ -1,0 +1,290 @@
+"""`condground record`: scripted-expert demonstrations written to a LeRobotDataset (v3).
+
+Per frame: camera frames, `observation.state`, `action`, and the label features of
+`lerobot_condground.core.labels` (phase, lossless segmentation, prompt crops). Per episode, the
+provenance file `meta/condground_record.json` keeps the seed and which competitor each
+segmentation label is.
+
+Only successful expert episodes are kept; a failed one is retried with the next seed and counted.
+The dataset is closed after every `checkpoint_every` episodes, so a crash loses at most the episodes
+since the last checkpoint (by default only the one in flight); rerunning resumes up to
+`num_episodes` instead of overwriting.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_condground.core.configs import DatasetOutputConfig
+from lerobot_condground.core.labels import (
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+    PNG_FEATURE,
+    encode_png,
+)
+from lerobot_condground.core.provenance import RECORD_FILE
+from lerobot_condground.core.ur3e import MOTOR_NAMES
+from lerobot_condground.envs.configs import CondGroundEnvConfig
+
+PROVENANCE_ENV_KEYS = (
+    "task",
+    "condition",
+    "counterbalanced",
+    "fps",
+    "observation_height",
+    "observation_width",
+    "wrist_camera",
+)
+
+
+@dataclass
+class RecordDatasetConfig(DatasetOutputConfig):
+    repo_id: str | None = "local/condground_pickplace"
+    # Number of successful expert episodes the dataset should hold when done.
+    num_episodes: int = 100
+    # Encode camera frames as video (true) or store them as PNG images (false).
+    video: bool = True
+    # Write the label features act_modified and the diagnosis tools read (segmentation, phase, prompt
+    # crops). Stock LeRobot policies other than ACT-as-`act_modified --policy.variant=standard` cannot
+    # read string features: record with --dataset.labels=false for them.
+    labels: bool = True
+    # Close and reopen the dataset after this many episodes: a crash loses at most these.
+    checkpoint_every: int = 1
+
+
+@dataclass
+class RecordConfig:
+    env: CondGroundEnvConfig = field(default_factory=CondGroundEnvConfig)
+    dataset: RecordDatasetConfig = field(default_factory=RecordDatasetConfig)
+    # Episode k of a fresh dataset is tried with seed + k (and later seeds after failures).
+    seed: int = 0
+    # Stop with an error when the expert fails this many episodes in a row.
+    max_consecutive_failures: int = 20
+    # Show a progress bar.
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.dataset.num_episodes < 1:
+            raise ValueError(f"dataset.num_episodes={self.dataset.num_episodes} must be at least 1")
+        if self.dataset.checkpoint_every < 1:
+            raise ValueError(f"dataset.checkpoint_every={self.dataset.checkpoint_every} must be at least 1")
+
+
+def dataset_features(env_cfg: CondGroundEnvConfig, video: bool, labels: bool = True) -> dict:
+    h, w = env_cfg.observation_height, env_cfg.observation_width
+    image = {
+        "dtype": "video" if video else "image",
+        "shape": (h, w, 3),
+        "names": ["height", "width", "channels"],
+    }
+    features = {
+        "observation.images.top": image,
+        "observation.state": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
+        "action": {"dtype": "float32", "shape": (7,), "names": list(MOTOR_NAMES)},
+    }
+    if labels:
+        features[OBS_PHASE] = {"dtype": "int64", "shape": (1,), "names": ["phase"]}
+        features |= {
+            key: dict(PNG_FEATURE) for key in (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
+        }
+    if env_cfg.wrist_camera:
+        features["observation.images.wrist"] = dict(image)
+    return features
+
+
+def make_recording_env(env_cfg: CondGroundEnvConfig, labels: bool = True):
+    from lerobot_condground.envs.pickplace_env import PickPlaceEnv
+
+    return PickPlaceEnv(
+        task=env_cfg.task,
+        condition=env_cfg.condition,
+        counterbalanced=env_cfg.counterbalanced,
+        observation_height=env_cfg.observation_height,
+        observation_width=env_cfg.observation_width,
+        wrist_camera=env_cfg.wrist_camera,
+        segmentation=labels,
+        prompts=labels,
+        fps=env_cfg.fps,
+    )
+
+
+def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict:
+    """One dataset frame; label features only when the env rendered them (`make_recording_env`)."""
+    frame = {
+        "observation.images.top": obs["pixels"]["top"],
+        "observation.state": obs["agent_pos"].astype(np.float32),
+        "action": action.astype(np.float32),
+        "task": task,
+    }
+    if "segmentation" in obs:
+        frame |= {
+            OBS_PHASE: np.array([phase], dtype=np.int64),
+            OBS_SEGMENTATION: encode_png(obs["segmentation"]),
+            OBS_PROMPT_OBJECT: encode_png(obs["prompt_object"]),
+            OBS_PROMPT_RECEPTACLE: encode_png(obs["prompt_receptacle"]),
+        }
+    if "wrist" in obs["pixels"]:
+        frame["observation.images.wrist"] = obs["pixels"]["wrist"]
+    return frame
+
+
+def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
+    """Creates the dataset, or resumes an existing one after checking it was made the same way."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    provenance_path = root / RECORD_FILE
+    if (root / "meta" / "info.json").exists():
+        info = json.loads((root / "meta" / "info.json").read_text())
+        previous = json.loads(provenance_path.read_text()) if provenance_path.exists() else {}
+        mismatches = []
+        if info.get("fps") != cfg.env.fps:
+            mismatches.append(f"fps {info.get('fps')} != {cfg.env.fps}")
+        for key, ft in features.items():
+            have = info["features"].get(key)
+            if have is None or tuple(have["shape"]) != tuple(ft["shape"]) or have["dtype"] != ft["dtype"]:
+                mismatches.append(f"feature {key}")
+        from lerobot.utils.constants import DEFAULT_FEATURES
+
+        mismatches += [
+            f"feature {key}" for key in sorted(set(info["features"]) - set(features) - set(DEFAULT_FEATURES))
+        ]
+        for key in ("task", "condition", "counterbalanced"):
+            if previous.get("env", {}).get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
+                mismatches.append(f"env.{key} {previous['env'][key]!r} != {getattr(cfg.env, key)!r}")
+        if mismatches:
+            raise ValueError(
+                f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
+                f"choose another --dataset.root or record with the same settings to resume it"
+            )
+        dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=False)
+        return dataset, previous
+    # Not LeRobot's streaming encoder: when its queue is full (a busy CPU, our burst of add_frame calls)
+    # it drops frames with only a warning, and the video ends up shorter than the episode.
+    dataset = LeRobotDataset.create(
+        cfg.dataset.repo_id,
+        fps=cfg.env.fps,
+        features=features,
+        root=root,
+        robot_type="ur3e_sim",
+        use_videos=cfg.dataset.video,
+        streaming_encoding=False,
+    )
+    return dataset, {}
+
+
+def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
+    from lerobot_condground import __version__
+
+    env = {key: getattr(cfg.env, key) for key in PROVENANCE_ENV_KEYS}
+    payload = {"env": env, "seed": cfg.seed, "version": __version__, **state}
+    tmp = root / (RECORD_FILE + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=1, default=str))
+    os.replace(tmp, root / RECORD_FILE)
+
+
+def record(cfg: RecordConfig) -> dict:
+    """Records until the dataset holds `num_episodes` expert episodes. Returns counts for the report."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from tqdm import tqdm
+
+    from lerobot_condground.envs.expert import ScriptedExpert, run_expert_episode
+
+    features = dataset_features(cfg.env, cfg.dataset.video, cfg.dataset.labels)
+    env = make_recording_env(
+        cfg.env, cfg.dataset.labels
+    )  # validates the condition and its layout before anything is written
+    expert = ScriptedExpert()
+    root = cfg.dataset.path()
+    dataset, previous = _open_dataset(cfg, root, features)
+    have = dataset.meta.total_episodes
+    state = {
+        "next_seed": previous.get("next_seed", cfg.seed),
+        # Provenance is written ahead of the data; after a hard kill it may name one unsaved episode.
+        "episodes": previous.get("episodes", [])[:have],
+        "failed_seeds": previous.get("failed_seeds", []),
+    }
+    if have:
+        logging.info("Resuming %s: %d episodes already recorded", root, have)
+    # Counts of this run only: what the closing line reports.
+    run_stages: Counter = Counter()
+    attempts = successes = consecutive_failures = 0
+    bar = tqdm(
+        total=cfg.dataset.num_episodes,
+        initial=have,
+        desc=f"record {cfg.env.task} {cfg.env.condition}",
+        unit="ep",
+        disable=not cfg.progress,
+    )
+    try:
+        while have < cfg.dataset.num_episodes:
+            seed = state["next_seed"]
+            state["next_seed"] += 1
+            frames: list[dict] = []
+            info = run_expert_episode(
+                env,
+                expert,
+                seed,
+                cfg.env.episode_length,
+                on_step=lambda obs, action, phase: frames.append(  # noqa: B023  (called within this iteration)
+                    episode_frames(obs, action, phase, env.task_description)
+                ),
+            )
+            attempts += 1
+            run_stages[int(info["stage"])] += 1
+            if not info["is_success"]:
+                state["failed_seeds"].append(seed)
+                consecutive_failures += 1
+                if consecutive_failures >= cfg.max_consecutive_failures:
+                    raise RuntimeError(
+                        f"The expert failed {consecutive_failures} episodes in a row (last seed {seed}); "
+                        f"the environment is broken for task={cfg.env.task} condition={cfg.env.condition}"
+                    )
+                continue
+            consecutive_failures = 0
+            successes += 1
+            state["episodes"].append(
+                {"seed": seed, "task": env.task_description, "entities": env.entity_table()}
+            )
+            _write_provenance(root, cfg, state)  # before the data, so a resumed run never reuses a seed
+            for frame in frames:
+                dataset.add_frame(frame)
+            dataset.save_episode()
+            have += 1
+            bar.update(1)
+            if have % cfg.dataset.checkpoint_every == 0 and have < cfg.dataset.num_episodes:
+                dataset.finalize()
+                dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=False)
+    finally:
+        bar.close()
+        # Whatever happened, what was saved is closed and readable.
+        dataset.finalize()
+        _write_provenance(root, cfg, state)
+        env.close()
+    if cfg.dataset.push_to_hub:
+        LeRobotDataset(cfg.dataset.repo_id, root=root).push_to_hub(private=cfg.dataset.private)
+    return {
+        "attempts": attempts,
+        "successes": successes,
+        "stages": dict(run_stages),
+        "root": str(root),
+        "total_episodes": have,
+    }
+
+
+def format_summary(result: dict) -> str:
+    from lerobot_condground.envs.stages import STAGES
+
+    stage_counts = ", ".join(f"{name}={result['stages'].get(i, 0)}" for i, name in enumerate(STAGES))
+    line = f"expert success: {result['successes']}/{result['attempts']}"
+    if not result["attempts"]:
+        line += f" (the dataset already holds {result['total_episodes']} episodes)"
+    return f"{line}\nstages reached: {stage_counts}"

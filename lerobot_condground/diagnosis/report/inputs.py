@@ -1,0 +1,156 @@
+"""Reading and checking the output directories of `condground sweep`, `diagnose`, `probe` and `attention`.
+
+Each directory is recognised by the JSON its command wrote; any inconsistency is one ValueError naming the
+directory, raised before anything is written.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from lerobot_condground.evaluation.results import read_metadata, read_table
+
+KIND_FILES = {
+    "sweep.json": "sweep",
+    "diagnostics.json": "diagnose",
+    "probe.json": "probe",
+    "attention.json": "attention",
+}
+# One episode: the same weights on the same layout under the same condition and prompt. Sweeps of one
+# checkpoint with different seed offsets hold different layouts and may be combined.
+EPISODE_KEY = ("checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@dataclass
+class Inputs:
+    results: pd.DataFrame  # every sweep's episodes, with `source` = the input directory
+    sources: list[tuple[Path, dict]]  # (directory, its JSON) in the order given, for provenance
+    diagnostics: list[tuple[Path, dict]]
+    probes: list[tuple[Path, dict]]
+    attention: list[tuple[Path, dict]]
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path.parent}: {path.name} is not readable JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path.parent}: {path.name} holds {type(data).__name__}, not a JSON object")
+    return data
+
+
+def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
+    path = folder / "results.parquet"
+    if not path.is_file():
+        raise ValueError(
+            f"{folder}: sweep.json without results.parquet; the sweep did not finish or the file was moved"
+        )
+    try:
+        frame = read_table(path)
+    except ValueError as err:
+        raise ValueError(f"{folder}: {err}") from None
+    grid = manifest.get("grid")
+    if not isinstance(grid, dict) or "task" not in grid or "conditions" not in grid:
+        raise ValueError(f"{folder}: sweep.json has no grid with task and conditions")
+    written = read_metadata(path).get("grid")
+    if written != grid:
+        keys = sorted(k for k in set(grid) | set(written or {}) if (written or {}).get(k) != grid.get(k))
+        raise ValueError(
+            f"{folder}: results.parquet was written for another grid than sweep.json (differs in {keys})"
+        )
+    problems = []
+    if set(frame["task"]) - {grid["task"]}:
+        problems.append(f"tasks {sorted(set(frame['task']))} but the grid's task is {grid['task']!r}")
+    if set(frame["condition"]) != set(grid["conditions"]):
+        problems.append(
+            f"conditions {sorted(set(frame['condition']))} but the grid lists {sorted(grid['conditions'])}"
+        )
+    hashes = {c.get("hash") for c in manifest.get("checkpoints", [])}
+    if set(frame["checkpoint_hash"]) != hashes:
+        problems.append(
+            f"checkpoint hashes {sorted(set(frame['checkpoint_hash']))} but sweep.json lists {sorted(hashes)}"
+        )
+    if problems:
+        raise ValueError(f"{folder}: results.parquet does not match sweep.json: {'; '.join(problems)}")
+    dup = frame.duplicated(list(EPISODE_KEY), keep=False)
+    if dup.any():
+        example = frame.loc[dup, list(EPISODE_KEY)].iloc[0].to_dict()
+        raise ValueError(
+            f"{folder}: results.parquet holds {int(dup.sum())} rows with a repeated episode, e.g. {example}"
+        )
+    return frame.assign(source=str(folder))
+
+
+def _check_files(folder: Path, rels, what: str) -> None:
+    for rel in rels:
+        path = folder / rel
+        if not path.is_file():
+            raise ValueError(f"{folder}: {what} {rel!r} listed in its JSON does not exist")
+        with path.open("rb") as fh:
+            if fh.read(8) != PNG_MAGIC:
+                raise ValueError(f"{folder}: {what} {rel!r} is not a PNG image")
+
+
+def load_inputs(dirs: list[str]) -> Inputs:
+    """Reads and checks every input directory; any inconsistency is one ValueError naming the directory."""
+    if not dirs:
+        raise ValueError(
+            "No input directories: give --input_dir=DIR (repeatable) with sweep, diagnose, probe or "
+            "attention outputs"
+        )
+    frames, sources, diagnostics, probes, attention = [], [], [], [], []
+    seen: set[Path] = set()
+    for raw in dirs:
+        folder = Path(raw)
+        if not folder.is_dir():
+            raise ValueError(f"{folder}: not a directory")
+        if folder.resolve() in seen:
+            raise ValueError(f"{folder}: given twice as --input_dir; its episodes would count double")
+        seen.add(folder.resolve())
+        found = [(name, kind) for name, kind in KIND_FILES.items() if (folder / name).is_file()]
+        if not found:
+            raise ValueError(
+                f"{folder}: none of {', '.join(KIND_FILES)} found; give the --output_dir of condground "
+                "sweep, diagnose, probe or attention"
+            )
+        for name, kind in found:
+            data = _read_json(folder / name)
+            if data.get("kind") != kind:
+                raise ValueError(f"{folder}: {name} says kind {data.get('kind')!r}, expected {kind!r}")
+            sources.append((folder, data))
+            if kind == "sweep":
+                frames.append(_load_sweep(folder, data))
+            elif kind == "diagnose":
+                _check_files(folder, (data.get("figures") or {}).values(), "figure")
+                diagnostics.append((folder, data))
+            elif kind == "probe":
+                probes.append((folder, data))
+            else:
+                _check_files(folder, data.get("stills") or [], "still")
+                attention.append((folder, data))
+    results = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if len(frames) > 1:
+        _refuse_overlap(results)
+    return Inputs(results, sources, diagnostics, probes, attention)
+
+
+def _refuse_overlap(results: pd.DataFrame) -> None:
+    """The same episode of the same weights in two sweep directories would be counted twice."""
+    per_key = results.groupby(list(EPISODE_KEY), sort=False)["source"].nunique()
+    clash = per_key[per_key > 1]
+    if len(clash):
+        key = dict(zip(EPISODE_KEY, clash.index[0], strict=True))
+        mask = np.logical_and.reduce([results[k] == v for k, v in key.items()])
+        folders = sorted(set(results.loc[mask, "source"]))
+        raise ValueError(
+            f"{len(clash)} episodes appear in more than one sweep directory ({' and '.join(folders)}), e.g. "
+            f"{key}; give each sweep once, or separate sweeps of the same checkpoints by condition or eval "
+            "seed"
+        )

@@ -1,0 +1,89 @@
+"""The document rendered through Jinja2 templates: HTML with every PNG inlined as a data URI, so the file
+can be mailed or archived alone, and Markdown with the PNGs written to `NAME_files/` beside it."""
+
+from __future__ import annotations
+
+import base64
+import html
+import re
+from pathlib import Path
+
+from jinja2 import Environment, PackageLoader, StrictUndefined
+from markupsafe import Markup
+
+from .sections import Document, Table
+
+
+def _escape_html(value) -> Markup:
+    """Autoescaping with the standard library's entities: markupsafe would write ' as &#39;, and the
+    report has always written &#x27;, which readers and tests search for."""
+    if hasattr(value, "__html__"):
+        return Markup(value.__html__())
+    return Markup(html.escape(str(value)))
+
+
+def _code_spans(text: str) -> Markup:
+    """Markdown's `code` spans, in HTML."""
+    return Markup(re.sub(r"`([^`]+)`", r"<code>\1</code>", _escape_html(text)))
+
+
+def _md_cell(text) -> str:
+    """A Markdown table cell: a pipe would end the cell, and a line break the row."""
+    return "<br>".join(str(text).replace("|", "\\|").splitlines())
+
+
+def _md_columns(table: Table) -> list[str]:
+    """Markdown has no spanning headers: the group goes into each column's name."""
+    columns = list(table.columns)
+    i = 0
+    for text, span in table.groups or []:
+        for j in range(i, i + span):
+            columns[j] = f"{text}: {columns[j]}" if text else columns[j]
+        i += span
+    return columns
+
+
+def _environment(autoescape: bool) -> Environment:
+    env = Environment(
+        loader=PackageLoader(__package__, "templates"),
+        autoescape=autoescape,
+        finalize=_escape_html if autoescape else None,
+        undefined=StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters.update(splitlines=lambda text: str(text).splitlines())
+    return env
+
+
+_HTML = _environment(autoescape=True)
+_HTML.filters.update(code_spans=_code_spans, base64=lambda png: base64.b64encode(png).decode("ascii"))
+_MARKDOWN = _environment(autoescape=False)
+_MARKDOWN.filters.update(md_cell=_md_cell, md_columns=_md_columns)
+
+
+def render_html(doc: Document) -> str:
+    return _HTML.get_template("report.html.j2").render(doc=doc)
+
+
+def render_markdown(doc: Document, files_dir: str) -> tuple[str, dict[str, bytes]]:
+    """Markdown text and the PNG files it links, by file name under `files_dir`."""
+    text = _MARKDOWN.get_template("report.md.j2").render(doc=doc, files_dir=files_dir)
+    return text, {f"{figure.name}.png": figure.png for figure in doc.figures}
+
+
+def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
+    """Writes the HTML to `html_path` and the Markdown beside it (same name, .md, figures in NAME_files/)."""
+    md_path = html_path.with_suffix(".md")
+    files_dir = html_path.parent / f"{html_path.stem}_files"
+    html_path.parent.mkdir(parents=True, exist_ok=True)
+    html_path.write_text(render_html(doc), encoding="utf-8")
+    text, files = render_markdown(doc, files_dir.name)
+    files_dir.mkdir(exist_ok=True)
+    for stale in files_dir.glob("*.png"):  # a rerun with fewer figures must not leave old ones behind
+        if stale.name not in files:
+            stale.unlink()
+    for name, png in files.items():
+        (files_dir / name).write_bytes(png)
+    md_path.write_text(text, encoding="utf-8")
+    return html_path, md_path

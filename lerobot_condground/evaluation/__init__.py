@@ -1,0 +1,1 @@
+"""Evaluating policies: checkpoint loading, batched rollouts, the sweep's units and launchers, results and statistics."""

@@ -1,0 +1,210 @@
+"""Loads a policy checkpoint the way `lerobot-eval` does, for the diagnosis commands.
+
+Any policy LeRobot can load works (ours or stock, a local `pretrained_model` directory or a hub id,
+offline from the cache with HF_HUB_OFFLINE=1). The pseudo path `expert` stands for the scripted
+expert, the oracle every table can show beside the policies.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+EXPERT = "expert"
+CAMERA_PREFIX = "observation.images."
+
+
+@dataclass
+class LoadedPolicy:
+    path: str
+    label: str
+    policy_type: str
+    variant: str
+    hash: str
+    training_seed: int | None
+    cameras: dict[str, tuple[int, int]] = field(default_factory=dict)  # name -> (height, width)
+    vectors: dict[str, tuple[int, ...]] = field(default_factory=dict)  # state and action shapes
+    needs_prompts: bool = False
+    policy: Any = None
+    preprocessor: Any = None
+    postprocessor: Any = None
+    env_preprocessor: Any = None
+    env_postprocessor: Any = None
+
+    @property
+    def is_expert(self) -> bool:
+        return self.policy_type == EXPERT
+
+    def describe(self) -> dict:
+        return {
+            "path": self.path,
+            "hash": self.hash,
+            "label": self.label,
+            "policy_type": self.policy_type,
+            "variant": self.variant,
+            "training_seed": self.training_seed,
+        }
+
+
+def checkpoint_file(path: str, name: str) -> Path | None:
+    """A file of a checkpoint directory or hub repo; None if the checkpoint has no such file."""
+    local = Path(path)
+    if local.is_dir():
+        return local / name if (local / name).is_file() else None
+    from huggingface_hub import hf_hub_download
+    from huggingface_hub.errors import EntryNotFoundError
+
+    try:
+        return Path(hf_hub_download(path, name))
+    except EntryNotFoundError:
+        return None
+    except Exception as err:  # invalid id, not cached while offline, no such repo, network
+        raise FileNotFoundError(
+            f"Policy path {path!r} is not a checkpoint directory and cannot be fetched as a hub id "
+            f"({type(err).__name__}: {str(err).splitlines()[0]}); or use `{EXPERT}` for the scripted expert"
+        ) from None
+
+
+def checkpoint_hash(path: str) -> str:
+    """sha256 (16 hex digits) of config.json and model.safetensors: what identifies the weights."""
+    digest = hashlib.sha256()
+    for name in ("config.json", "model.safetensors"):
+        file = checkpoint_file(path, name)
+        if file is None:
+            raise FileNotFoundError(
+                f"Checkpoint {path!r} has no {name}; expected a LeRobot pretrained_model directory or hub id"
+            )
+        with open(file, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+@functools.cache
+def register_plugins() -> None:
+    """A checkpoint names its policy type and processor steps by registry name: LeRobot imports the installed
+    plugins (this one included) first, as its own scripts do."""
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    register_third_party_plugins()
+
+
+def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> LoadedPolicy:
+    """What a checkpoint is, without building it: type, variant, cameras, hash, training seed."""
+    register_plugins()
+    if path == EXPERT:
+        return LoadedPolicy(
+            path=EXPERT,
+            label=label or EXPERT,
+            policy_type=EXPERT,
+            variant="",
+            hash=EXPERT,
+            training_seed=index,
+        )
+    config_file = checkpoint_file(path, "config.json")
+    if config_file is None:
+        raise FileNotFoundError(
+            f"Policy path {path!r} is neither a checkpoint directory with config.json nor a cached hub id "
+            f"(or `{EXPERT}` for the scripted expert)"
+        )
+    config = json.loads(config_file.read_text())
+    policy_type = config.get("type", "")
+    variant = config.get("variant", "") if policy_type == "act_modified" else ""
+    cameras = {
+        key[len(CAMERA_PREFIX) :]: tuple(feature["shape"][-2:])
+        for key, feature in config.get("input_features", {}).items()
+        if key.startswith(CAMERA_PREFIX) and feature.get("type") == "VISUAL"
+    }
+    vectors = {
+        key: tuple(feature["shape"])
+        for group in ("input_features", "output_features")
+        for key, feature in config.get(group, {}).items()
+        if key in ("observation.state", "action")
+    }
+    train_config = checkpoint_file(path, "train_config.json")
+    seed = json.loads(train_config.read_text()).get("seed") if train_config else None
+    return LoadedPolicy(
+        path=path,
+        label=label or (f"{policy_type}/{variant}" if variant else policy_type),
+        policy_type=policy_type,
+        variant=variant,
+        hash=checkpoint_hash(path),
+        training_seed=seed if seed is not None else index,
+        cameras=cameras,
+        vectors=vectors,
+        needs_prompts=bool(config.get("use_prompts")),
+    )
+
+
+def check_env_fits(loaded: LoadedPolicy, env_cfg) -> None:
+    """The checkpoint's cameras and sizes must be ones the env renders; one error naming what differs."""
+    if loaded.is_expert:
+        return
+    from lerobot.envs.utils import env_to_policy_features
+
+    env_features = env_to_policy_features(env_cfg)
+    problems = []
+    for name, size in loaded.cameras.items():
+        feature = env_features.get(CAMERA_PREFIX + name)
+        if feature is None:
+            problems.append(f"camera {name!r} (env cameras: top, and wrist with --env.wrist_camera=true)")
+        else:
+            shape = tuple(feature.shape)
+            rendered = shape[1:] if shape[0] == 3 else shape[:2]  # CHW or HWC
+            if rendered != tuple(size):
+                problems.append(
+                    f"camera {name!r} at {size[0]}x{size[1]} (env renders {rendered[0]}x{rendered[1]})"
+                )
+    if not loaded.cameras:
+        problems.append("no camera input at all")
+    for key, shape in loaded.vectors.items():
+        feature = env_features.get(key)
+        if feature is None or tuple(feature.shape) != tuple(shape):
+            problems.append(
+                f"{key} of shape {tuple(shape)} (env: {tuple(feature.shape) if feature else 'none'})"
+            )
+    if problems:
+        raise ValueError(
+            f"Checkpoint {loaded.path!r} does not fit the env {env_cfg.task}: it expects "
+            + "; ".join(problems)
+        )
+
+
+def resolve_device(device: str | None) -> str:
+    """--policy.device as LeRobot resolves it: checked when given, else the best one on this machine."""
+    from lerobot.utils.device_utils import auto_select_torch_device, get_safe_torch_device
+
+    return str(get_safe_torch_device(device) if device else auto_select_torch_device())
+
+
+def load_policy(
+    path: str, env_cfg, device: str = "cpu", label: str | None = None, index: int = 0
+) -> LoadedPolicy:
+    """Builds the policy and its processors with LeRobot's own factories, as `lerobot-eval` does."""
+    loaded = describe_checkpoint(path, label, index)
+    if loaded.is_expert:
+        return loaded
+    check_env_fits(loaded, env_cfg)
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.envs.factory import make_env_pre_post_processors
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(path)
+    cfg.pretrained_path = Path(path) if Path(path).is_dir() else path
+    cfg.device = device
+    policy = make_policy(cfg=cfg, env_cfg=env_cfg)
+    policy.eval()
+    loaded.policy = policy
+    loaded.preprocessor, loaded.postprocessor = make_pre_post_processors(
+        policy_cfg=cfg,
+        pretrained_path=str(path),
+        preprocessor_overrides={"device_processor": {"device": device}},
+    )
+    loaded.env_preprocessor, loaded.env_postprocessor = make_env_pre_post_processors(
+        env_cfg=env_cfg, policy_cfg=cfg
+    )
+    return loaded

@@ -1,0 +1,94 @@
+"""The per-episode results table of the diagnosis commands: its columns, and safe reading and writing.
+
+One row per episode. Identity columns say which policy ran where; outcome columns are what
+`rollout.outcome` reads off the env. Files are written to a temporary name and renamed, so a killed
+process never leaves a half-written table under the real name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+IDENTITY_COLUMNS = (
+    "policy_label",
+    "policy_type",
+    "variant",
+    "checkpoint",
+    "checkpoint_hash",
+    "training_seed",
+    "task",
+    "condition",
+    "condition_spec",
+    "counterbalanced",
+    "eval_seed",
+    "episode",
+    "layout_seed",
+    "prompt",
+)
+OUTCOME_COLUMNS = (
+    "stage",
+    "success",
+    "pick",
+    "lift",
+    "place",
+    "grasped_first",
+    "grasped_first_match",
+    "grasped_competitor",
+    "grasped_competitor_match",
+    "selected_competitor_object",
+    "target_location",
+    "competitor_location",
+    "placed_in_competitor_receptacle",
+    "target_x",
+    "target_y",
+    "target_z",
+    "competitor_x",
+    "competitor_y",
+    "competitor_z",
+    "receptacle_x",
+    "receptacle_y",
+    "steps",
+    "truncated",
+    "physics_unstable",
+)
+COLUMNS = IDENTITY_COLUMNS + OUTCOME_COLUMNS
+METADATA_KEY = b"condground"
+
+
+def write_table(rows: list[dict] | pd.DataFrame, path: Path, metadata: dict | None = None) -> None:
+    frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows, columns=list(COLUMNS))
+    table = pa.Table.from_pandas(frame[list(COLUMNS)], preserve_index=False)
+    if metadata is not None:
+        table = table.replace_schema_metadata(
+            {**(table.schema.metadata or {}), METADATA_KEY: json.dumps(metadata).encode()}
+        )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    pq.write_table(table, tmp)
+    os.replace(tmp, path)
+
+
+def read_table(path: Path) -> pd.DataFrame:
+    """A results table; one clear error if the file is unreadable or lacks columns."""
+    try:
+        frame = pq.read_table(path).to_pandas()
+    except Exception as err:  # pyarrow raises several types for damaged files
+        raise ValueError(
+            f"Results file {path} is corrupted or not a parquet table ({type(err).__name__}: {err})"
+        ) from None
+    missing = [c for c in COLUMNS if c not in frame.columns]
+    if missing:
+        raise ValueError(f"Results file {path} lacks columns {missing}; it was not written by condground")
+    return frame
+
+
+def read_metadata(path: Path) -> dict:
+    metadata = pq.read_schema(path).metadata or {}
+    return json.loads(metadata[METADATA_KEY]) if METADATA_KEY in metadata else {}

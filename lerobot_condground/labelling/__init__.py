@@ -1,0 +1,1 @@
+"""Visual prompts and label maps for hardware recordings: segmenters, prompt tracking, dataset labelling."""

@@ -1,0 +1,1 @@
+"""One module per `condground` command: its config and `main`."""

@@ -1,0 +1,279 @@
+"""`condground quickstart`: the whole pipeline in a few minutes on a laptop CPU.
+
+1. records a few expert demonstrations of each task (LeRobotDatasets with masks, phases, prompts),
+2. trains a small `act_modified` (variant `full`) on Task 1 with the stock `lerobot-train`,
+3. evaluates it with the stock `lerobot-eval` under `clean` and `full_mixed`,
+4. prints the stage table of the policy next to the scripted expert's,
+5. runs the diagnosis suite small: a sweep (policy and expert over four conditions), the
+   representation diagnostics, the prompt-swap probe and an attention video, then writes the report.
+
+Everything runs at a small camera resolution so a CPU gets through it; a few demonstrations and
+a few hundred steps make a pipeline check, not a learning result. Rerunning reuses the datasets
+and the trained checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lerobot_condground.core.conditions import TASKS
+
+CONDITIONS = ("clean", "full_mixed")
+TRAIN_TASK = "PickPlaceFixedBin-v0"
+
+
+@dataclass
+class QuickstartTrainConfig:
+    steps: int = 300
+    batch_size: int = 8
+    # ImageNet weights for the ResNet-18 backbone (downloaded by torchvision; needs the internet).
+    pretrained_backbone: bool = False
+    variant: str = "full"
+
+
+@dataclass
+class QuickstartEvalConfig:
+    # Policy rollouts per condition.
+    episodes: int = 6
+    episode_length: int = 300
+
+
+@dataclass
+class QuickstartDiagnosisConfig:
+    enable: bool = True
+    conditions: str = "clean,object_color_1,receptacle_shape_1,full_mixed"
+    # Sweep rollouts per condition (one evaluation seed), probe layouts, diagnose episode pairs.
+    episodes: int = 4
+    probe_episodes: int = 4
+    pairs: int = 2
+    frame_stride: int = 4
+    workers: int | None = None
+
+
+@dataclass
+class Config:
+    # Datasets land in <output_dir>/datasets/<task>, the policy in <output_dir>/train.
+    output_dir: str = "outputs/quickstart"
+    # Expert demonstrations recorded per task.
+    episodes_per_task: int = 10
+    # Expert rollouts per task and condition for the stage-metric table.
+    expert_episodes: int = 20
+    observation_height: int = 96
+    observation_width: int = 128
+    train: QuickstartTrainConfig = field(default_factory=QuickstartTrainConfig)
+    eval: QuickstartEvalConfig = field(default_factory=QuickstartEvalConfig)
+    diagnosis: QuickstartDiagnosisConfig = field(default_factory=QuickstartDiagnosisConfig)
+    progress: bool = True
+
+
+def _script(name: str) -> str:
+    """A console script installed beside this interpreter (lerobot-train, lerobot-eval)."""
+    return str(Path(sys.executable).parent / name)
+
+
+def _run(command: list[str]) -> None:
+    """Runs a stock script, showing its progress lines (training steps, eval batches) as they come."""
+    print("$", " ".join(command), flush=True)
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    lines = []
+    with subprocess.Popen(
+        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    ) as proc:
+        for line in proc.stdout:
+            lines.append(line)
+            if " step:" in line:  # lerobot-train's periodic log line
+                print("  " + line.rstrip()[-160:], flush=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{Path(command[0]).name} failed ({proc.returncode}):\n{''.join(lines[-80:])}")
+
+
+def _record(cfg: Config) -> dict[str, Path]:
+    from lerobot_condground.datasets.record import RecordConfig, RecordDatasetConfig, format_summary, record
+    from lerobot_condground.envs.configs import CondGroundEnvConfig
+
+    roots = {}
+    for task in TASKS:
+        root = Path(cfg.output_dir) / "datasets" / task
+        result = record(
+            RecordConfig(
+                env=CondGroundEnvConfig(
+                    task=task,
+                    observation_height=cfg.observation_height,
+                    observation_width=cfg.observation_width,
+                ),
+                dataset=RecordDatasetConfig(
+                    repo_id=_repo_id(task), root=str(root), num_episodes=cfg.episodes_per_task
+                ),
+                progress=cfg.progress,
+            )
+        )
+        print(f"[{task}] dataset {root}: {result['total_episodes']} episodes; {format_summary(result)}")
+        roots[task] = root
+    return roots
+
+
+def _repo_id(task: str) -> str:
+    return f"local/condground_{task.split('-')[0].lower()}"
+
+
+def _train(cfg: Config, root: Path) -> Path:
+    out = Path(cfg.output_dir) / "train"
+    checkpoint = out / "checkpoints" / "last" / "pretrained_model"
+    if checkpoint.exists():
+        print(f"Reusing the trained policy {checkpoint} (delete {out} to retrain)")
+        return checkpoint
+    _run(
+        [
+            _script("lerobot-train"),
+            "--policy.type=act_modified",
+            f"--policy.variant={cfg.train.variant}",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--policy.dim_model=128",
+            "--policy.n_heads=4",
+            "--policy.dim_feedforward=512",
+            "--policy.n_encoder_layers=2",
+            "--policy.n_vae_encoder_layers=2",
+            "--policy.chunk_size=20",
+            "--policy.n_action_steps=20",
+            "--policy.optimizer_lr=1e-4",
+            "--policy.optimizer_lr_backbone=1e-4",
+            *([] if cfg.train.pretrained_backbone else ["--policy.pretrained_backbone_weights=null"]),
+            f"--dataset.repo_id={_repo_id(TRAIN_TASK)}",
+            f"--dataset.root={root}",
+            f"--batch_size={cfg.train.batch_size}",
+            f"--steps={cfg.train.steps}",
+            f"--save_freq={cfg.train.steps}",
+            f"--log_freq={max(1, cfg.train.steps // 10)}",
+            "--num_workers=0",
+            "--wandb.enable=false",
+            f"--output_dir={out}",
+        ]
+    )
+    return checkpoint
+
+
+def _evaluate(cfg: Config, checkpoint: Path, condition: str) -> list[int]:
+    out = Path(cfg.output_dir) / "eval" / condition
+    _run(
+        [
+            _script("lerobot-eval"),
+            f"--policy.path={checkpoint}",
+            "--env.type=condground",
+            f"--env.task={TRAIN_TASK}",
+            f"--env.condition={condition}",
+            f"--env.observation_height={cfg.observation_height}",
+            f"--env.observation_width={cfg.observation_width}",
+            f"--env.episode_length={cfg.eval.episode_length}",
+            f"--eval.n_episodes={cfg.eval.episodes}",
+            f"--eval.batch_size={min(cfg.eval.episodes, 4)}",
+            f"--output_dir={out}",
+        ]
+    )
+    info = json.loads((out / "eval_info.json").read_text())
+    print(
+        f"  {condition}: {info['overall']['n_episodes']} episodes, success {info['overall']['pc_success']:.0f} %"
+    )
+    # The env's reward is the stage index, so an episode's max reward is the stage it reached.
+    return [int(r) for r in info["per_task"][0]["metrics"]["max_rewards"]]
+
+
+def main(cfg: Config) -> list:
+    from lerobot_condground.envs.expert import expert_stages
+    from lerobot_condground.evaluation.stage_metrics import format_table, stage_metrics
+
+    roots = _record(cfg)
+    checkpoint = _train(cfg, roots[TRAIN_TASK])
+    rows = [
+        (f"act_modified/{cfg.train.variant}", condition, stage_metrics(_evaluate(cfg, checkpoint, condition)))
+        for condition in CONDITIONS
+    ]
+    rows += [
+        (
+            "expert",
+            condition,
+            stage_metrics(expert_stages(TRAIN_TASK, condition, cfg.expert_episodes, progress=cfg.progress)),
+        )
+        for condition in CONDITIONS
+    ]
+    print(f"\n{TRAIN_TASK}: stage metrics of the trained policy and of the scripted expert")
+    print(format_table(rows, first_column="policy"))
+    if cfg.diagnosis.enable:
+        _diagnose(cfg, checkpoint)
+    return rows
+
+
+def _diagnose(cfg: Config, checkpoint: Path) -> Path:
+    """The diagnosis suite at laptop size; outputs are rebuilt on every run (they follow the checkpoint)."""
+    import shutil
+
+    from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+    from lerobot_condground.diagnosis.attention import AttentionConfig, AttentionOptions, run_attention
+    from lerobot_condground.diagnosis.diagnose import DiagnoseConfig, DiagnoseOptions, run_diagnose
+    from lerobot_condground.diagnosis.probe import ProbeConfig, ProbeSettings, run_probe
+    from lerobot_condground.diagnosis.report import ReportConfig, build_report
+    from lerobot_condground.evaluation.sweep import SweepConfig, SweepEvalConfig, SweepGridConfig, run_sweep
+
+    d = cfg.diagnosis
+    out = Path(cfg.output_dir) / "diagnosis"
+    shutil.rmtree(out, ignore_errors=True)
+    length = cfg.eval.episode_length
+    print(
+        "\nDiagnosis: sweep, representation diagnostics, prompt-swap probe, attention video, report",
+        flush=True,
+    )
+    run_sweep(
+        SweepConfig(
+            policy=PolicyRefConfig(paths=f"{checkpoint},expert"),
+            env=EvalEnvConfig(task=TRAIN_TASK, episode_length=length),
+            sweep=SweepGridConfig(conditions=d.conditions),
+            eval=SweepEvalConfig(seeds=1, n_episodes=d.episodes, batch_size=d.episodes),
+            output_dir=str(out / "sweep"),
+            workers=d.workers,
+            progress=cfg.progress,
+        )
+    )
+    policy = PolicyRefConfig(path=str(checkpoint), device="cpu")
+    run_diagnose(
+        DiagnoseConfig(
+            policy=policy,
+            env=EvalEnvConfig(task=TRAIN_TASK),  # the expert's episodes, at full length
+            diagnose=DiagnoseOptions(pairs=d.pairs, frame_stride=d.frame_stride),
+            output_dir=str(out / "diagnose"),
+            sweep_dir=str(out / "sweep"),
+            progress=cfg.progress,
+        )
+    )
+    run_probe(
+        ProbeConfig(
+            policy=PolicyRefConfig(path=str(checkpoint)),
+            env=EvalEnvConfig(task=TRAIN_TASK, episode_length=length),
+            probe=ProbeSettings(episodes=d.probe_episodes, batch_size=d.probe_episodes),
+            output_dir=str(out / "probe"),
+            workers=d.workers,
+            progress=cfg.progress,
+        )
+    )
+    run_attention(
+        AttentionConfig(
+            policy=policy,
+            env=EvalEnvConfig(task=TRAIN_TASK, condition="full_mixed", episode_length=length),
+            attention=AttentionOptions(),
+            output_dir=str(out / "attention"),
+            progress=cfg.progress,
+        )
+    )
+    html, markdown = build_report(
+        ReportConfig(
+            input_dir=[str(out / name) for name in ("sweep", "diagnose", "probe", "attention")],
+            output=str(out / "report" / "report.html"),
+            title="condground quickstart: diagnosis report",
+        )
+    )
+    print(f"\nReport: {html} (Markdown: {markdown})")
+    return html

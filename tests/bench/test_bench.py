@@ -1,0 +1,48 @@
+import json
+
+from helpers import run_cli
+
+
+def test_bench_json_reports_every_figure():
+    out = run_cli(
+        "condground",
+        "bench",
+        "--json=true",
+        "--seconds=0.3",
+        "--rounds=2",
+        "--record_episodes=1",
+        "--observation_height=96",
+        "--observation_width=128",
+        "--policy.dim_model=64",
+        "--policy.chunk_size=10",
+        "--policy.batch_size=2",
+        "--policy.steps=1",
+        "--sweep.workers=1,2",
+        "--sweep.episodes=4",
+        "--sweep.batch_size=2",
+        "--sweep.episode_length=10",
+        "--sweep.dim_model=64",
+    )
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    for key in (
+        "physics_steps_per_s",
+        "render_fps",
+        "env_steps_per_s",
+        "env_steps_per_s_with_segmentation",
+        "env_steps_per_s_expert",
+        "record_frames_per_s",
+    ):
+        assert result[key] > 0, key
+    assert result["resolution"] == [96, 128]
+    assert result["physics_steps_per_s"] > result["env_steps_per_s"]
+    for policy in ("act", "standard", "augmentation", "augmentation_attention", "full"):
+        assert result[f"{policy}_train_step_s"] > 0 and result[f"{policy}_inference_s"] > 0, policy
+    assert result["act_modified_train_step_ratio"] == result["full_train_step_ratio"] > 0
+    assert result["act_modified_inference_ratio"] == result["full_inference_ratio"] > 0
+    for workers in (1, 2):
+        assert result[f"sweep_rollouts_per_min_{workers}_workers"] > 0
+        assert result[f"sweep_env_steps_per_s_{workers}_workers"] > 0
+    assert (
+        result["sweep_speedup_2_workers"]
+        == result["sweep_rollouts_per_min_2_workers"] / result["sweep_rollouts_per_min_1_workers"]
+    )

@@ -1,0 +1,174 @@
+import os
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from helpers import BIN, read_json, run_cli
+from lerobot_condground.core.labels import (
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+    PNG_LABEL_KEYS,
+    decode_labels,
+    phase_masks,
+)
+from lerobot_condground.core.provenance import RECORD_FILE
+from lerobot_condground.envs.assets import COLORS
+from lerobot_condground.envs.robot import MOTOR_NAMES
+
+
+def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_dataset):
+    ds = LeRobotDataset("local/test_full_mixed", root=recorded_dataset)
+    assert ds.meta.total_episodes == 2 and ds.fps == 20
+    assert ds.meta.features["observation.state"]["names"] == list(MOTOR_NAMES)
+    assert ds.meta.video_keys == ["observation.images.top"]
+    # Label images are PNG strings: cheap to fetch for every frame of an action chunk, skipped by stats.
+    assert all(
+        ds.meta.features[key]["dtype"] == "string" and key not in ds.meta.stats for key in PNG_LABEL_KEYS
+    )
+    provenance = read_json(recorded_dataset / RECORD_FILE)
+    assert provenance["env"]["condition"] == "full_mixed" and len(provenance["episodes"]) == 2
+    for ep in range(2):
+        start = ds.meta.episodes["dataset_from_index"][ep]
+        end = ds.meta.episodes["dataset_to_index"][ep]
+        entities = provenance["episodes"][ep]["entities"]
+        assert sorted(e["match"] for e in entities[2:]) == [
+            "color",
+            "color",
+            "neither",
+            "neither",
+            "shape",
+            "shape",
+        ]
+        phases = np.array([int(ds[i][OBS_PHASE]) for i in range(start, end)])
+        assert phases[0] == 0 and phases[-1] == 1 and np.all(np.diff(phases) >= 0)
+        switch = start + int(np.argmax(phases))
+        for idx, color in ((start, "red"), (switch - 1, "red"), (switch + 5, "blue")):
+            item = decode_labels(ds[idx])
+            relevant, competitors = phase_masks(item[OBS_SEGMENTATION], item[OBS_PHASE])
+            relevant = relevant.numpy()
+            assert relevant.sum() > 20 and not (relevant & competitors.numpy()).any()
+            rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)[relevant].mean(axis=0)
+            assert np.argmax(rgb) == np.argmax(COLORS[color]), (idx, rgb)
+        item = decode_labels(ds[start])
+        seg = item[OBS_SEGMENTATION].numpy()
+        assert set(np.unique(seg)) == set(range(9))
+        rgb = item["observation.images.top"].numpy().transpose(1, 2, 0)
+        for entity in entities:
+            mean = rgb[seg == entity["label"]].mean(axis=0)
+            assert np.argmax(mean) == np.argmax(COLORS[entity["color"]]) or entity["color"] == "yellow", (
+                entity
+            )
+        for key, color in ((OBS_PROMPT_OBJECT, "red"), (OBS_PROMPT_RECEPTACLE, "blue")):
+            crop = item[key].numpy().astype(float)
+            assert crop.shape == (64, 64, 3)
+            assert np.argmax(crop[20:44, 20:44].reshape(-1, 3).mean(axis=0)) == np.argmax(COLORS[color])
+        assert item["task"] == "Pick the red cube and place it in the blue bowl."
+
+
+def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
+    root = tmp_path / "ds"
+    common = [
+        "--env.task=PickPlaceFixedBin-v0",
+        "--dataset.repo_id=local/resume",
+        f"--dataset.root={root}",
+        "--progress=false",
+        "--env.observation_height=96",
+        "--env.observation_width=128",
+        "--env.wrist_camera=true",
+    ]
+    run_cli("condground", "record", *common, "--dataset.num_episodes=1")
+    out = run_cli("condground", "record", *common, "--dataset.num_episodes=2")
+    assert "expert success: 1/1" in out.stdout
+    ds = LeRobotDataset("local/resume", root=root)
+    assert ds.meta.total_episodes == 2 and len(ds) == ds.meta.total_frames
+    assert ds.meta.video_keys == ["observation.images.top", "observation.images.wrist"]
+    assert ds[len(ds) - 1]["observation.images.wrist"].shape == (3, 96, 128)
+    seeds = [e["seed"] for e in read_json(root / RECORD_FILE)["episodes"]]
+    assert len(set(seeds)) == 2
+    bad = run_cli(
+        "condground", "record", *common, "--dataset.num_episodes=3", "--env.condition=full_mixed", check=False
+    )
+    assert bad.returncode != 0
+    assert (
+        "already holds a dataset recorded differently" in bad.stderr
+        and "env.condition 'clean' != 'full_mixed'" in bad.stderr
+    )
+    assert LeRobotDataset("local/resume", root=root).meta.total_episodes == 2
+
+
+def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
+    root = tmp_path / "ds"
+    args = [
+        str(BIN / "condground"),
+        "record",
+        "--env.task=PickPlaceFixedBin-v0",
+        "--dataset.repo_id=local/kill",
+        f"--dataset.root={root}",
+        "--dataset.num_episodes=50",
+        "--progress=false",
+        "--env.observation_height=96",
+        "--env.observation_width=128",
+    ]
+    proc = subprocess.Popen(
+        args, env={**os.environ, "MUJOCO_GL": "egl"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline:
+            path = root / RECORD_FILE
+            # Provenance runs one episode ahead of the data: 3 named means 2 saved and closed.
+            if path.exists() and len(read_json(path)["episodes"]) >= 3:
+                break
+            assert proc.poll() is None, "recording ended early"
+            time.sleep(0.2)
+        else:
+            pytest.fail("no checkpoint within 300 s")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    ds = LeRobotDataset("local/kill", root=root)
+    assert ds.meta.total_episodes >= 2
+    ds[len(ds) - 1]  # the last frame decodes
+    out = run_cli(
+        "condground",
+        "record",
+        *args[2:-4],
+        "--dataset.num_episodes=" + str(ds.meta.total_episodes + 1),
+        "--env.observation_height=96",
+        "--env.observation_width=128",
+    )
+    assert "expert success: 1/1" in out.stdout
+    total = LeRobotDataset("local/kill", root=root).meta.total_episodes
+    seeds = [e["seed"] for e in read_json(root / RECORD_FILE)["episodes"]]
+    assert len(seeds) == total and len(set(seeds)) == total
+
+
+def test_bad_record_flags_fail_before_any_work(tmp_path):
+    root = tmp_path / "never"
+    for flag, fragment in (
+        ("--env.condition=object_color_9", "Unknown condition 'object_color_9'"),
+        ("--env.observation_height=1000", "Image height 1000 cannot be rendered"),
+        ("--env.task=PickPlace-v0", "Unknown task 'PickPlace-v0'"),
+    ):
+        out = run_cli("condground", "record", flag, f"--dataset.root={root}", check=False)
+        assert out.returncode != 0 and fragment in out.stderr + out.stdout, out.stderr[-2000:]
+        assert not root.exists()
+
+
+def test_every_frame_reaches_the_video(recorded_dataset):
+    import av
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("local/test_full_mixed", root=recorded_dataset)
+    for ep in range(ds.meta.total_episodes):
+        path = recorded_dataset / ds.meta.get_video_file_path(ep, "observation.images.top")
+        with av.open(str(path)) as container:
+            decoded = sum(1 for _ in container.decode(video=0))
+        episode = ds.meta.episodes[ep]
+        assert decoded >= episode["dataset_to_index"] - episode["dataset_from_index"], ep

@@ -1,0 +1,169 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import lerobot_condground  # noqa: F401
+from lerobot_condground.envs.assets import COLORS
+from lerobot_condground.envs.expert import ScriptedExpert, run_expert_episode
+from lerobot_condground.envs.pickplace_env import PickPlaceEnv
+
+
+def test_passes_gymnasiums_env_checker():
+    env = gym.make(
+        "gym_condground/PickPlaceFixedBin-v0",
+        condition="object_color_1",
+        observation_height=96,
+        observation_width=128,
+        wrist_camera=True,
+        segmentation=True,
+        prompts=True,
+    )
+    check_env(env.unwrapped, skip_render_check=False)
+    assert env.spec.max_episode_steps == 300
+    env.close()
+
+
+def _episode(seed, **kwargs):
+    env = PickPlaceEnv(
+        task="PickPlaceRandomBin-v0",
+        condition="full_mixed",
+        observation_height=96,
+        observation_width=128,
+        **kwargs,
+    )
+    frames = []
+    expert = ScriptedExpert()
+    info = run_expert_episode(
+        env, expert, seed, 300, on_step=lambda obs, a, p: frames.append(obs["pixels"]["top"])
+    )
+    env.close()
+    return np.stack(frames), info
+
+
+def test_same_seed_same_frames_and_outcome():
+    a_frames, a_info = _episode(3)
+    b_frames, b_info = _episode(3)
+    c_frames, _ = _episode(4)
+    assert a_frames.shape == b_frames.shape and np.array_equal(a_frames, b_frames)
+    assert a_info == b_info and a_info["is_success"]
+    assert a_frames.shape != c_frames.shape or not np.array_equal(a_frames, c_frames)
+
+
+def test_reward_is_the_stage_index_and_stages_are_latched_in_order():
+    env = PickPlaceEnv(task="PickPlaceFixedBin-v0", condition="receptacle_shape_1", obs_type="agent_pos")
+    expert = ScriptedExpert()
+    obs, info = env.reset(seed=5)
+    expert.reset(env)
+    assert info["stage"] == 0 and not info["is_success"]
+    rewards, stages = [], []
+    for _ in range(300):
+        obs, reward, terminated, truncated, info = env.step(expert.act(obs))
+        rewards.append(reward)
+        stages.append(info["stage"])
+        if terminated:
+            break
+    assert rewards == [float(s) for s in stages]
+    assert np.all(np.diff(stages) >= 0) and set(stages) == {0, 1, 2, 3}
+    assert info["is_success"] and info["grasped_first"] == 1 and info["grasped_first_match"] == "target"
+    assert info["target_location"] == "target_receptacle"
+
+
+def test_holding_a_competitor_is_not_a_pick_and_is_reported():
+    """Steer the expert to a color-matched competitor: the grasp is recorded, the pick is not."""
+    env = PickPlaceEnv(task="PickPlaceRandomBin-v0", condition="object_color_1", obs_type="agent_pos")
+    expert = ScriptedExpert()
+    obs, _ = env.reset(seed=2)
+    expert.reset(env)
+    competitor = next(e for e in env.layout.entities if e.match == "color")
+    real_pose = env.entity_pose
+    env.entity_pose = lambda label: real_pose(competitor.label if label == 1 else label)
+    expert.reset(env)
+    for _ in range(60):
+        obs, reward, terminated, _, info = env.step(expert.act(obs))
+        if expert.phase == "transport":
+            break
+    assert info["grasped_first"] == competitor.label and info["grasped_first_match"] == "color"
+    assert info["grasped_competitor"] == competitor.label
+    assert info["stage"] == 0 and not info["pick"]
+
+
+def test_segmentation_masks_cover_the_entities_they_name():
+    env = PickPlaceEnv(task="PickPlaceRandomBin-v0", condition="full_mixed", segmentation=True, prompts=True)
+    obs, _ = env.reset(seed=1)
+    rgb, seg = obs["pixels"]["top"].astype(float) / 255, obs["segmentation"]
+    for entity in env.layout.entities:
+        mask = seg == entity.label
+        assert mask.sum() > 30, entity
+        # Shading varies, hue does not: the masked pixels are nearest to the entity's own color.
+        mean = rgb[mask].mean(axis=0)
+        nearest = min(
+            COLORS, key=lambda c: np.linalg.norm(mean / mean.max() - np.array(COLORS[c]) / max(COLORS[c]))
+        )
+        assert nearest == entity.asset.color, (entity, mean)
+    for key, label in (("prompt_object", 1), ("prompt_receptacle", 2)):
+        crop = obs[key].astype(float) / 255
+        color = np.array(COLORS[env.layout.entities[label - 1].asset.color])
+        centre = crop[24:40, 24:40].reshape(-1, 3).mean(axis=0)
+        assert np.argmax(centre) == np.argmax(color) or np.allclose(color[:2], color[:2].max(), atol=0.1)
+    env.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs, fragment",
+    [
+        (dict(task="PickPlace-v9"), "Unknown task 'PickPlace-v9'"),
+        (dict(condition="mixed"), "Unknown condition 'mixed'"),
+        (dict(condition="object_shape=5"), "object_shape=5 is out of range"),
+        (dict(observation_height=720, observation_width=1280), "Image height 720 cannot be rendered"),
+        (dict(observation_width=32), "Image width 32 cannot be rendered"),
+        (dict(fps=33), "Control rate fps=33 is not allowed"),
+        (dict(obs_type="state"), "Unknown obs_type 'state'"),
+    ],
+)
+def test_bad_construction_is_refused_with_the_value_named(kwargs, fragment):
+    with pytest.raises(ValueError, match="allowed") as err:
+        PickPlaceEnv(**kwargs)
+    assert fragment in str(err.value)
+
+
+@pytest.mark.parametrize("action", [np.zeros(6), np.full(7, np.nan), np.zeros((2, 7))])
+def test_bad_actions_are_refused(action):
+    env = PickPlaceEnv(obs_type="agent_pos")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="Action must be 7 finite numbers"):
+        env.step(action)
+
+
+def test_task_description_names_the_targets():
+    env = PickPlaceEnv(task="PickPlaceRandomBin-v0", counterbalanced=True, obs_type="agent_pos")
+    descriptions = set()
+    for seed in range(8):
+        env.reset(seed=seed)
+        t = env.layout
+        assert (
+            env.task_description
+            == f"Pick the {t.target_object.asset} and place it in the {t.target_receptacle.asset}."
+        )
+        descriptions.add(env.task_description)
+    assert len(descriptions) > 1
+
+
+def test_largest_resolution_and_wrist_camera_render():
+    env = PickPlaceEnv(observation_height=480, observation_width=640, wrist_camera=True, segmentation=True)
+    obs, _ = env.reset(seed=0)
+    assert obs["pixels"]["top"].shape == obs["pixels"]["wrist"].shape == (480, 640, 3)
+    assert obs["segmentation"].shape == (480, 640) and (obs["segmentation"] == 1).sum() > 100
+    assert not np.array_equal(obs["pixels"]["top"], obs["pixels"]["wrist"])
+    env.close()
+
+
+def test_a_diverging_simulation_truncates_the_episode_with_a_flag():
+    env = PickPlaceEnv(obs_type="agent_pos")
+    _, info = env.reset(seed=0)
+    assert info["physics_unstable"] is False
+    _, _, terminated, truncated, info = env.step(np.concatenate([env.joint_positions(), [0.0]]))
+    assert not truncated and not info["physics_unstable"]
+    env.data.qvel[-1] = 1e30  # what a blown-up solver leaves behind
+    _, _, terminated, truncated, info = env.step(np.concatenate([env.joint_positions(), [0.0]]))
+    assert truncated and info["physics_unstable"] and not terminated

@@ -1,0 +1,319 @@
+"""The act_modified policy on small CPU configs: variants, equality with stock ACT, the attention
+loss, prompt selection, checkpoints and warm starts."""
+
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.policies.act.configuration_act import ACTConfig
+from lerobot.policies.act.modeling_act import ACTPolicy
+
+from lerobot_condground.core.labels import (
+    OBS_PHASE,
+    OBS_PROMPT_OBJECT,
+    OBS_PROMPT_RECEPTACLE,
+    OBS_SEGMENTATION,
+    TARGET_OBJECT,
+    TARGET_RECEPTACLE,
+)
+from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS, ACTModifiedConfig
+from lerobot_condground.policies.act_modified.modeling_act_modified import (
+    ACTModifiedPolicy,
+    attention_overlaps,
+)
+
+H, W, B, CHUNK = 64, 96, 4, 5
+CAMERA = "observation.images.top"
+SMALL = dict(
+    dim_model=32,
+    n_heads=4,
+    dim_feedforward=64,
+    n_encoder_layers=1,
+    n_vae_encoder_layers=1,
+    chunk_size=CHUNK,
+    n_action_steps=CHUNK,
+    pretrained_backbone_weights=None,
+    device="cpu",
+)
+ACTION_FEATURES = {"action": PolicyFeature(FeatureType.ACTION, (7,))}
+
+
+def dataset_features(labels: bool = True) -> dict:
+    features = {
+        CAMERA: PolicyFeature(FeatureType.VISUAL, (3, H, W)),
+        "observation.state": PolicyFeature(FeatureType.STATE, (7,)),
+    }
+    if labels:
+        features |= {
+            OBS_SEGMENTATION: PolicyFeature(FeatureType.STATE, (H, W)),
+            OBS_PHASE: PolicyFeature(FeatureType.STATE, (1,)),
+            OBS_PROMPT_OBJECT: PolicyFeature(FeatureType.STATE, (64, 64, 3)),
+            OBS_PROMPT_RECEPTACLE: PolicyFeature(FeatureType.STATE, (64, 64, 3)),
+        }
+    return features
+
+
+def make_policy(**overrides) -> ACTModifiedPolicy:
+    torch.manual_seed(0)
+    cfg = ACTModifiedConfig(
+        input_features=dataset_features(), output_features=dict(ACTION_FEATURES), **SMALL | overrides
+    )
+    return ACTModifiedPolicy(cfg)
+
+
+def make_batch(seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    seg = torch.zeros(B, H, W, dtype=torch.long)
+    seg[:, 8:24, 8:24] = TARGET_OBJECT
+    seg[:, 32:56, 56:88] = TARGET_RECEPTACLE
+    seg[:, 40:56, 8:24] = 3  # a real competitor
+    return {
+        CAMERA: torch.rand(B, 3, H, W, generator=g),
+        "observation.state": torch.randn(B, 7, generator=g),
+        "action": torch.randn(B, CHUNK, 7, generator=g),
+        "action_is_pad": torch.zeros(B, CHUNK, dtype=torch.bool),
+        OBS_SEGMENTATION: seg,
+        OBS_PHASE: torch.tensor([0, 1] * (B // 2)),
+        OBS_PROMPT_OBJECT: torch.randint(0, 256, (B, 64, 64, 3), generator=g),
+        OBS_PROMPT_RECEPTACLE: torch.randint(0, 256, (B, 64, 64, 3), generator=g),
+    }
+
+
+def observation(batch: dict) -> dict:
+    return {
+        k: v for k, v in batch.items() if k not in ("action", "action_is_pad", OBS_SEGMENTATION, OBS_PHASE)
+    }
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_every_variant_trains_and_acts(variant):
+    policy = make_policy(variant=variant)
+    assert set(policy.config.input_features) == {CAMERA, "observation.state"}, "labels must never be inputs"
+    policy.train()
+    loss, info = policy(make_batch())
+    loss.backward()
+    assert torch.isfinite(loss)
+    grads = {n: p.grad for n, p in policy.named_parameters() if p.requires_grad}
+    assert all(g is not None and torch.isfinite(g).all() for g in grads.values()), [
+        n for n, g in grads.items() if g is None
+    ]
+    expected = {"l1_loss", "kld_loss"}
+    if variant in ("augmentation_attention", "full"):
+        expected |= {"attention_on_relevant", "attention_on_distractors"}
+    if variant == "full":
+        expected |= {"phase_loss", "phase_accuracy"}
+    assert set(info) == expected
+    policy.reset()
+    action = policy.select_action(observation(make_batch(1)))
+    assert action.shape == (B, 7) and torch.isfinite(action).all()
+
+
+def test_standard_variant_is_stock_act():
+    act = ACTPolicy(
+        ACTConfig(
+            input_features=dataset_features(labels=False), output_features=dict(ACTION_FEATURES), **SMALL
+        )
+    )
+    ours = make_policy(variant="standard")
+    assert ours.load_state_dict(act.state_dict(), strict=True)
+    batch = make_batch()
+    for policy in (act, ours):
+        policy.eval()
+    torch.testing.assert_close(
+        ours.predict_action_chunk(observation(batch)),
+        act.predict_action_chunk(observation(batch)),
+        rtol=0,
+        atol=0,
+    )
+    act.train()
+    ours.train()
+    torch.manual_seed(3)
+    act_loss, _ = act(batch)
+    torch.manual_seed(3)
+    our_loss, _ = ours(batch)
+    assert our_loss.item() == act_loss.item()
+
+
+def test_supervised_head_attention_is_the_heads_softmax():
+    policy = make_policy(variant="augmentation_attention", attention_head=2)
+    policy.eval()
+    mha = policy.model.decoder.layers[-1].multihead_attn
+    query, key = torch.randn(CHUNK, B, 32), torch.randn(20, B, 32)
+    mha.capture = True
+    _, weights = mha(query, key, key, need_weights=True, average_attn_weights=False)
+    mha.capture = False
+    torch.testing.assert_close(mha.head_attention(2), weights[:, 2])
+
+
+def test_attention_loss_moves_attention_to_the_relevant_mask():
+    policy = make_policy(variant="augmentation_attention", attention_pos_weight=5.0, attention_neg_weight=5.0)
+    batch = make_batch()
+    optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
+
+    def overlaps():
+        policy.eval()
+        with torch.no_grad():
+            aux = policy.model(policy._images_listed(batch), with_attention=True)[2]
+        return [
+            o.mean().item()
+            for o in attention_overlaps(aux["attention"], batch[OBS_SEGMENTATION], batch[OBS_PHASE])
+        ]
+
+    relevant_before, distractors_before = overlaps()
+    policy.train()
+    for _ in range(40):
+        optimizer.zero_grad()
+        policy(batch)[0].backward()
+        optimizer.step()
+    relevant_after, distractors_after = overlaps()
+    assert relevant_after > relevant_before + 0.3, (relevant_before, relevant_after)
+    assert distractors_after < distractors_before, (distractors_before, distractors_after)
+
+
+def test_empty_masks_give_a_finite_loss():
+    policy = make_policy(variant="augmentation_attention")
+    batch = make_batch()
+    batch[OBS_SEGMENTATION] = torch.zeros_like(batch[OBS_SEGMENTATION])  # target occluded, no distractors
+    policy.train()
+    loss, info = policy(batch)
+    loss.backward()
+    assert (
+        torch.isfinite(loss)
+        and info["attention_on_relevant"] == 0.0
+        and info["attention_on_distractors"] == 0.0
+    )
+    assert all(torch.isfinite(p.grad).all() for p in policy.parameters() if p.grad is not None)
+
+
+def test_predicted_phase_picks_the_prompt_at_inference():
+    policy = make_policy(variant="full")
+    policy.eval()
+    head = policy.model.phase_head[-1]
+    batch = observation(make_batch())
+    other = torch.zeros_like(batch[OBS_PROMPT_OBJECT])
+    for phase, fed, ignored in (
+        (0, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE),
+        (1, OBS_PROMPT_RECEPTACLE, OBS_PROMPT_OBJECT),
+    ):
+        with torch.no_grad():
+            head.bias.copy_(torch.tensor([10.0, -10.0]) if phase == 0 else torch.tensor([-10.0, 10.0]))
+            head.weight.zero_()
+        reference = policy.predict_action_chunk(batch)
+        assert torch.equal(policy.predict_action_chunk(batch | {ignored: other}), reference)
+        assert not torch.allclose(policy.predict_action_chunk(batch | {fed: other}), reference)
+
+
+def test_missing_labels_name_the_keys_and_a_variant_that_works():
+    features = dataset_features()
+    del features[OBS_PROMPT_OBJECT], features[OBS_PROMPT_RECEPTACLE]
+    cfg = ACTModifiedConfig(
+        variant="full", input_features=features, output_features=dict(ACTION_FEATURES), **SMALL
+    )
+    with pytest.raises(ValueError, match=r"prompt\.object.*prompt\.receptacle.*'augmentation_attention'"):
+        ACTModifiedPolicy(cfg)
+    cfg = ACTModifiedConfig(
+        variant="augmentation",
+        input_features=dataset_features(labels=False),
+        output_features=dict(ACTION_FEATURES),
+        **SMALL,
+    )
+    with pytest.raises(ValueError, match=r"segmentation.*'standard'"):
+        ACTModifiedPolicy(cfg)
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (dict(variant="best"), "variant 'best'"),
+        (dict(attention_head=4), "attention_head=4"),
+        (dict(variant="standard", use_prompts=True), "use_phase_predictor"),
+        (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
+        (dict(copy_paste_prob=1.5), "1.5"),
+    ],
+)
+def test_bad_settings_fail_at_parse_time(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        ACTModifiedConfig(**SMALL | overrides)
+
+
+def test_variant_presets_can_be_overridden():
+    cfg = ACTModifiedConfig(variant="full", use_copy_paste=False, **SMALL)
+    assert (cfg.use_copy_paste, cfg.use_attention_loss, cfg.use_prompts, cfg.use_phase_predictor) == (
+        False,
+        True,
+        True,
+        True,
+    )
+
+
+def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
+    from lerobot.policies.factory import make_pre_post_processors
+
+    policy = make_policy(variant="full")
+    stats = {
+        CAMERA: {"mean": torch.full((3, 1, 1), 0.4), "std": torch.full((3, 1, 1), 0.2)},
+        "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
+        "action": {"mean": torch.ones(7), "std": torch.full((7,), 2.0)},
+    }
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=stats)
+    for part in (policy, preprocessor, postprocessor):
+        part.save_pretrained(tmp_path)
+    loaded = ACTModifiedPolicy.from_pretrained(tmp_path)
+    loaded_pre, loaded_post = make_pre_post_processors(loaded.config, pretrained_path=str(tmp_path))
+    assert loaded.config.variant == "full" and loaded.config.label_keys == policy.config.label_keys
+    assert [type(s) for s in loaded_pre.steps] == [type(s) for s in preprocessor.steps]
+
+    def act(policy, pre, post):
+        policy.reset()
+        return post(policy.select_action(pre(observation(make_batch()))))
+
+    torch.testing.assert_close(
+        act(loaded, loaded_pre, loaded_post), act(policy, preprocessor, postprocessor), rtol=0, atol=0
+    )
+
+
+def test_warm_start_from_a_stock_act_checkpoint(tmp_path):
+    torch.manual_seed(1)
+    act = ACTPolicy(
+        ACTConfig(
+            input_features=dataset_features(labels=False), output_features=dict(ACTION_FEATURES), **SMALL
+        )
+    )
+    act.save_pretrained(tmp_path / "act")
+    warm = make_policy(variant="full", init_from_act=str(tmp_path / "act"))
+    ours = warm.state_dict()
+    for name, value in act.state_dict().items():
+        assert torch.equal(ours[name], value), name
+    assert any(name.startswith("model.phase_head") for name in ours)
+    # Reloading the act_modified checkpoint uses its own weights, not the warm start again.
+    (tmp_path / "act" / "model.safetensors").unlink()
+    warm.save_pretrained(tmp_path / "ours")
+    ACTModifiedPolicy.from_pretrained(tmp_path / "ours")
+
+
+def test_warm_start_from_an_incompatible_checkpoint_is_refused(tmp_path):
+    other = ACTPolicy(
+        ACTConfig(
+            input_features=dataset_features(labels=False),
+            output_features=dict(ACTION_FEATURES),
+            **SMALL | {"dim_model": 16, "dim_feedforward": 32},
+        )
+    )
+    other.save_pretrained(tmp_path)
+    with pytest.raises(ValueError, match="init_from_act=.*does not fit"):
+        make_policy(variant="standard", init_from_act=str(tmp_path))
+
+
+def test_prompts_are_encoded_once_per_episode_and_again_after_training():
+    policy = make_policy(variant="full")
+    policy.eval()
+    batch = observation(make_batch())
+    first = policy.predict_action_chunk(batch)
+    cache = policy.model._prompt_cache
+    assert cache is not None
+    assert torch.equal(policy.predict_action_chunk(batch), first) and policy.model._prompt_cache is cache
+    policy.train()
+    assert policy.model._prompt_cache is None
+    with torch.no_grad():
+        policy.model.encoder_img_feat_input_proj.weight.mul_(2.0)
+    policy.eval()
+    assert not torch.allclose(policy.predict_action_chunk(batch), first)
