@@ -3,6 +3,8 @@ import sys
 from importlib.metadata import distribution
 from pathlib import Path
 
+import pytest
+
 from helpers import run_cli
 from lerobot_condground.evaluation.results import read_table
 
@@ -165,3 +167,38 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
         check=False,
     )
     assert bad.returncode == 2 and "full_mix" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        (["record", "--dataset.num_episodes=0"], "num_episodes=0"),
+        (["augment", "--copy_paste.prob=2"], "prob=2"),
+        (["sweep", "--policy.paths=expert", "--launcher=slurm"], "slurm"),
+        (["sweep", "--eval.seeds=many"], "many"),
+        (["probe", "--policy.path=x", "--probe.role=cup"], "cup"),
+        (["diagnose", "--policy.path=x", "--env.condition=full_mix"], "full_mix"),
+        (["prompts", "--segmenter=magic"], "magic"),
+    ],
+)
+def test_every_command_reports_bad_input_in_one_line(args, named):
+    """One error policy: the bad value named on one line, exit code 2, no traceback, whatever the command."""
+    bad = run_cli("condground", *args, check=False)
+    lines = bad.stderr.strip().splitlines()
+    assert bad.returncode == 2, bad.stderr[-2000:]
+    assert lines[-1].startswith(f"condground {args[0]}:") and named in lines[-1], lines[-1]
+    assert "Traceback" not in bad.stderr
+
+
+def test_a_group_flag_keeps_the_command_default_of_the_group():
+    """draccus rebuilds a group from its class defaults once one of its flags is given: the commands' own
+    defaults for shared groups must survive that."""
+    import draccus
+
+    from lerobot_condground.diagnosis.attention import AttentionConfig
+    from lerobot_condground.diagnosis.diagnose import DiagnoseConfig
+
+    assert (
+        draccus.parse(AttentionConfig, args=["--env.task=PickPlaceFixedBin-v0"]).env.condition == "full_mixed"
+    )
+    assert draccus.parse(DiagnoseConfig, args=["--env.episode_length=5"]).env.condition == "clean"

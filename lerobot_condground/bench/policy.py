@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from lerobot_condground.evaluation.checkpoints import resolve_device
 from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
 
 POLICIES = ("act", *VARIANTS)
@@ -25,7 +26,7 @@ POLICIES = ("act", *VARIANTS)
 class PolicyBenchConfig:
     # Measure the policies at all (needs a few minutes on a CPU at full model size).
     enable: bool = True
-    # cpu, cuda, or auto (cuda when available).
+    # cpu, cuda, ...; auto (default): the best one here.
     device: str = "auto"
     batch_size: int = 8
     # Timed training steps and inferences per policy and round.
@@ -33,16 +34,6 @@ class PolicyBenchConfig:
     # Model width (ACT's default is 512); smaller for quick checks.
     dim_model: int = 512
     chunk_size: int = 100
-
-
-def _device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name not in ("cpu", "cuda"):
-        raise ValueError(f"--policy.device={name!r}; allowed: cpu, cuda, auto")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--policy.device=cuda but no CUDA device is available")
-    return name
 
 
 def _policy_config(name: str, cfg: PolicyBenchConfig, device: str, dataset_features: dict):
@@ -85,7 +76,7 @@ def bench_policies(repo_id: str, root: str, cfg: PolicyBenchConfig, rounds: int)
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    device = _device(cfg.device)
+    device = resolve_device(cfg.device)
     meta = LeRobotDataset(repo_id, root=root).meta
     dataset = LeRobotDataset(
         repo_id, root=root, delta_timestamps={"action": [i / meta.fps for i in range(cfg.chunk_size)]}

@@ -1,6 +1,9 @@
 """Config groups every command shares, defined once: a checkpoint reference, an evaluation env, a dataset.
 
 Commands compose them as `--policy.*`, `--env.*`, `--dataset.*` / `--output.*` (LeRobot's flag style).
+A command that wants other defaults for a group (diagnose's condition, augment's repo ids) fills them in
+its config's `__post_init__`: draccus rebuilds a group from its class defaults as soon as one of the
+group's flags is given, so a `default_factory` holding other values would be silently dropped.
 """
 
 from __future__ import annotations

@@ -175,10 +175,17 @@ def check_env_fits(loaded: LoadedPolicy, env_cfg) -> None:
 
 
 def resolve_device(device: str | None) -> str:
-    """--policy.device as LeRobot resolves it: checked when given, else the best one on this machine."""
+    """--policy.device as LeRobot resolves it: checked when given, else (or `auto`) the best one on this machine."""
     from lerobot.utils.device_utils import auto_select_torch_device, get_safe_torch_device
 
-    return str(get_safe_torch_device(device) if device else auto_select_torch_device())
+    if device in (None, "", "auto"):
+        return str(auto_select_torch_device())
+    try:
+        return str(get_safe_torch_device(device))
+    except RuntimeError as err:  # torch's own words for a string that names no device type
+        raise ValueError(
+            f"--policy.device={device!r} is not a device; allowed: auto, cpu, cuda, cuda:N, mps, xpu"
+        ) from err
 
 
 def load_policy(

@@ -4,21 +4,22 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
+import pandas as pd
+
+from lerobot_condground.evaluation.statistics import counts
+
+STAGE_METRICS = ("success", "p_pick", "p_lift_given_pick", "p_place_given_pick_lift")
+
 
 def stage_metrics(stages: Iterable[int]) -> dict:
-    """Success, P(pick), P(lift|pick), P(place|pick,lift), each with its own denominator."""
-    stages = list(stages)
-    n = len(stages)
-    picked = sum(s >= 1 for s in stages)
-    lifted = sum(s >= 2 for s in stages)
-    placed = sum(s >= 3 for s in stages)
-    return {
-        "episodes": n,
-        "success": (placed, n),
-        "p_pick": (picked, n),
-        "p_lift_given_pick": (lifted, picked),
-        "p_place_given_pick_lift": (placed, lifted),
-    }
+    """Success, P(pick), P(lift|pick), P(place|pick,lift) as (k, n), each with its own denominator, counted
+    as the sweep's statistics count them."""
+    stages = np.asarray(list(stages), dtype=int)
+    flags = pd.DataFrame(
+        {"success": stages >= 3, "pick": stages >= 1, "lift": stages >= 2, "place": stages >= 3}
+    )
+    return {"episodes": len(stages), **{metric: counts(flags, metric) for metric in STAGE_METRICS}}
 
 
 def _pct(k: int, n: int) -> str:

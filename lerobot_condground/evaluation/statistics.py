@@ -88,7 +88,8 @@ def _flags(df: pd.DataFrame, column: str) -> np.ndarray:
     return values.to_numpy().astype(bool)
 
 
-def _counts(df: pd.DataFrame, metric: str) -> tuple[int, int]:
+def counts(df: pd.DataFrame, metric: str) -> tuple[int, int]:
+    """(k, n) of one metric of METRICS over the rows of df."""
     numerator, given = METRICS[metric]
     mask = np.ones(len(df), dtype=bool)
     for column in given:
@@ -107,7 +108,7 @@ def cell_metrics(df: pd.DataFrame, by: Sequence[str] = CELL) -> pd.DataFrame:
         row: dict = dict(zip(by, key))
         row["episodes"] = len(cell)
         for metric in METRICS:
-            k, n = _counts(cell, metric)
+            k, n = counts(cell, metric)
             row[f"{metric}_k"], row[f"{metric}_n"] = k, n
         per_seed = cell.groupby("training_seed")["success"].apply(lambda s: s.astype(bool).mean())
         row["training_seeds"] = len(per_seed)
@@ -207,7 +208,7 @@ def _pair(reference: pd.DataFrame, other: pd.DataFrame, keys: Sequence[str], col
         example = unmatched[keys].iloc[0].to_dict()
         raise ValueError(
             f"{cell}: {len(unmatched)} episodes have no partner on {keys} "
-            f"({side.value_counts().to_dict()}; e.g. {example})"
+            f"({side.valuecounts().to_dict()}; e.g. {example})"
         )
     return paired_difference(merged[f"{column}_a"].to_numpy(), merged[f"{column}_b"].to_numpy())
 

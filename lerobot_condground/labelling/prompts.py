@@ -82,8 +82,7 @@ class PromptsConfig:
     progress: bool = True
 
     def __post_init__(self):
-        # Here, not in a default_factory: draccus rebuilds a group from its class defaults once one of
-        # its flags is given.
+        # This command's defaults for the shared groups (see core/configs.py on why not a default_factory).
         self.dataset.repo_id = self.dataset.repo_id or "local/ur3e_pickplace"
 
 
