@@ -208,7 +208,7 @@ def _pair(reference: pd.DataFrame, other: pd.DataFrame, keys: Sequence[str], col
         example = unmatched[keys].iloc[0].to_dict()
         raise ValueError(
             f"{cell}: {len(unmatched)} episodes have no partner on {keys} "
-            f"({side.valuecounts().to_dict()}; e.g. {example})"
+            f"({side.value_counts().to_dict()}; e.g. {example})"
         )
     return paired_difference(merged[f"{column}_a"].to_numpy(), merged[f"{column}_b"].to_numpy())
 

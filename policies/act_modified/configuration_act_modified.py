@@ -32,6 +32,7 @@ from lerobot_condground.core.labels import (
 from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
 
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
+BACKBONE_NORMS = ("frozen_batchnorm", "batchnorm", "groupnorm")
 VARIANTS: dict[str, dict[str, bool]] = {
     "standard": dict.fromkeys(COMPONENTS, False),
     "augmentation": {**dict.fromkeys(COMPONENTS, False), "use_copy_paste": True},
@@ -91,6 +92,11 @@ class ACTModifiedConfig(ACTConfig):
     copy_paste_max_occlusion: float = CopyPasteParams.max_occlusion
     copy_paste_seed: int = CopyPasteParams.seed
 
+    # Normalization layers of the ResNet backbone: frozen_batchnorm (LeRobot's ACT, made for ImageNet
+    # weights), batchnorm or groupnorm (32 groups). Trained from scratch (pretrained_backbone_weights=None),
+    # frozen batch norm is an identity: the backbone then has no normalization at all.
+    backbone_norm: str = "frozen_batchnorm"
+
     # Warm start: a stock `act` (or `act_modified`) checkpoint, local directory or hub id, whose
     # weights initialize the shared ACT parameters; the new heads start fresh.
     init_from_act: str | None = None
@@ -116,6 +122,16 @@ class ACTModifiedConfig(ACTConfig):
             raise ValueError(
                 "use_prompts=true needs use_phase_predictor=true: the predicted phase picks the object or "
                 "receptacle prompt at inference"
+            )
+        if self.backbone_norm not in BACKBONE_NORMS:
+            raise ValueError(
+                f"backbone_norm={self.backbone_norm!r} is not allowed; allowed: {', '.join(BACKBONE_NORMS)}"
+            )
+        if self.backbone_norm == "groupnorm" and self.pretrained_backbone_weights:
+            raise ValueError(
+                f"backbone_norm=groupnorm cannot load pretrained_backbone_weights="
+                f"{self.pretrained_backbone_weights!r} (batch-norm statistics); allowed with pretrained "
+                "weights: frozen_batchnorm, batchnorm"
             )
         if self.use_copy_paste:
             self.make_copy_paste_step()  # validates the copy_paste_* values now, at parse time

@@ -27,10 +27,12 @@ from pathlib import Path
 import einops
 import torch
 import torch.nn.functional as F  # noqa: N812
+import torchvision
 from lerobot.policies.act.modeling_act import ACT, ACTPolicy, ACTTemporalEnsembler
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
+from torchvision.models._utils import IntermediateLayerGetter
 
 from lerobot_condground.core.labels import (
     OBS_PHASE,
@@ -80,10 +82,25 @@ def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head:
     return torch.einsum("tbd,sbd->bts", q, k).div(math.sqrt(dim)).softmax(-1)
 
 
+def _norm_layer(name: str):
+    if name == "batchnorm":
+        return nn.BatchNorm2d
+    return lambda channels: nn.GroupNorm(32, channels)
+
+
 class ACTModified(ACT):
     def __init__(self, config: ACTModifiedConfig):
         super().__init__(config)
         dim = config.dim_model
+        if config.image_features and config.backbone_norm != "frozen_batchnorm":
+            # ACT builds its ResNet with FrozenBatchNorm2d whatever the weights; rebuilt the same way with
+            # normalization that trains.
+            resnet = getattr(torchvision.models, config.vision_backbone)(
+                replace_stride_with_dilation=[False, False, config.replace_final_stride_with_dilation],
+                weights=config.pretrained_backbone_weights,
+                norm_layer=_norm_layer(config.backbone_norm),
+            )
+            self.backbone = IntermediateLayerGetter(resnet, return_layers={"layer4": "feature_map"})
         if config.use_phase_predictor:
             pooled = self.encoder_img_feat_input_proj.in_channels * len(config.image_features)
             state = config.robot_state_feature.shape[0] if config.robot_state_feature else 0

@@ -133,6 +133,25 @@ def test_standard_variant_is_stock_act():
     assert our_loss.item() == act_loss.item()
 
 
+@pytest.mark.parametrize(
+    "norm, layer", [("batchnorm", torch.nn.BatchNorm2d), ("groupnorm", torch.nn.GroupNorm)]
+)
+def test_backbone_norm_trains_where_frozen_batch_norm_is_an_identity(norm, layer):
+    """From scratch, ACT's frozen batch norm normalizes nothing; the option puts norm layers that learn in
+    every place ResNet has one, and a training step reaches them."""
+    frozen = make_policy(variant="standard").model.backbone
+    policy = make_policy(variant="standard", backbone_norm=norm)
+    norms = [m for m in policy.model.backbone.modules() if isinstance(m, layer)]
+    assert len(norms) == sum(type(m).__name__ == "FrozenBatchNorm2d" for m in frozen.modules()) > 0
+    policy.train()
+    loss, _ = policy(make_batch())
+    loss.backward()
+    assert all(m.weight.grad is not None and m.weight.grad.abs().sum() > 0 for m in norms)
+    policy.eval()
+    action = policy.select_action(observation(make_batch(1)))
+    assert torch.isfinite(action).all()
+
+
 def test_supervised_head_attention_is_the_heads_softmax():
     policy = make_policy(variant="augmentation_attention", attention_head=2)
     policy.eval()
@@ -228,6 +247,11 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (dict(variant="standard", use_prompts=True), "use_phase_predictor"),
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
+        (dict(backbone_norm="layernorm"), "backbone_norm='layernorm'"),
+        (
+            dict(backbone_norm="groupnorm", pretrained_backbone_weights="ResNet18_Weights.IMAGENET1K_V1"),
+            "groupnorm",
+        ),
     ],
 )
 def test_bad_settings_fail_at_parse_time(overrides, message):

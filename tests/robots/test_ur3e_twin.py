@@ -281,8 +281,12 @@ def test_disconnect_stops_the_arm_on_an_exception():
             q[0] += 0.05
             robot.send_action(action(q))
             time.sleep(0.05)
+        # On a loaded machine a sleep may outlast the watchdog's two periods and stop the stream early;
+        # the last command restarts it, so the exception below always interrupts a streaming arm.
+        robot.send_action(action(q))
+        stops = arm.backend.servo_stops
         raise KeyboardInterrupt  # Ctrl-C in the middle of a motion
-    assert not robot.is_connected and arm.backend.servo_stops == 1 and not arm.loop.streaming
+    assert not robot.is_connected and arm.backend.servo_stops == stops + 1 and not arm.loop.streaming
     assert ur3e_twin.TWINS == [] and arm.env is None
 
 
