@@ -50,28 +50,51 @@ for norm in frozen_batchnorm groupnorm; do
       --env.task=$TASK --sweep.conditions=clean --eval.seeds=1 --eval.n_episodes="$EPISODES" \
       --output_dir="$OUT/eval/$norm/$step" --progress=false
   done
-  python - "$OUT" "$norm" "$BATCH" "$CSV_DIR/${TASK}_standard_${norm}.csv" <<'PY'
+done
+
+python - "$OUT" "$BATCH" "$CSV_DIR" "$TASK" <<'PY'
+import re
 import sys
 from pathlib import Path
 
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
 import pandas as pd
 
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import cell_metrics
 
-out, norm, batch, csv = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), sys.argv[4]
-start = float((out / f"t1_{norm}.start").read_text())
-rows = []
-for results in sorted((out / "eval" / norm).glob("*/results.parquet")):
-    step = int(results.parent.name)
-    saved = (out / f"t1_{norm}" / "checkpoints" / results.parent.name / "pretrained_model").stat().st_mtime
-    m = cell_metrics(read_table(results)).iloc[0]
-    rows.append({"minutes": round((saved - start) / 60, 1), "steps": step, "samples": step * batch,
-                 "success": m["success"], "n": int(m["success_n"]), "ci_low": m["success_low"],
-                 "ci_high": m["success_high"], "p_pick": m["p_pick"]})
-frame = pd.DataFrame(rows).sort_values("steps")
-frame.to_csv(csv, index=False, float_format="%.4f")
-print(csv)
-print(frame.to_string(index=False))
+out, batch, csv_dir, task = Path(sys.argv[1]), int(sys.argv[2]), Path(sys.argv[3]), sys.argv[4]
+fig, (ax_loss, ax_success) = plt.subplots(1, 2, figsize=(10, 3.6))
+for norm in ("frozen_batchnorm", "groupnorm"):
+    start = float((out / f"t1_{norm}.start").read_text())
+    rows = []
+    for results in sorted((out / "eval" / norm).glob("*/results.parquet")):
+        saved = (out / f"t1_{norm}" / "checkpoints" / results.parent.name / "pretrained_model").stat().st_mtime
+        m = cell_metrics(read_table(results)).iloc[0]
+        step = int(results.parent.name)
+        rows.append({"minutes": round((saved - start) / 60, 1), "steps": step, "samples": step * batch,
+                     "success": m["success"], "n": int(m["success_n"]), "ci_low": m["success_low"],
+                     "ci_high": m["success_high"], "p_pick": m["p_pick"]})
+    curve = pd.DataFrame(rows).sort_values("steps")
+    curve.to_csv(csv_dir / f"{task}_standard_{norm}.csv", index=False, float_format="%.4f")
+    print(norm, "\n", curve.to_string(index=False))
+    log = (out / f"t1_{norm}.log").read_text()
+    # LeRobot writes the step rounded (1K, 2K, ...): a logged line is every --log_freq=25 steps.
+    values = [float(v) for v in re.findall(r"step:\S+ .*?l1_loss:([0-9.]+)", log)]
+    loss = pd.DataFrame({"steps": [25 * (i + 1) for i in range(len(values))], "l1_loss": values})
+    loss.to_csv(csv_dir / f"{task}_standard_{norm}_loss.csv", index=False)
+    ax_loss.plot(loss.steps, loss.l1_loss, label=norm)
+    ax_success.errorbar(curve.minutes, 100 * curve.success, fmt="o-", label=norm, capsize=3,
+                        yerr=[100 * (curve.success - curve.ci_low), 100 * (curve.ci_high - curve.success)])
+ax_loss.set(xlabel="training steps (batch %d)" % batch, ylabel="training L1 loss (normalized actions)", yscale="log")
+ax_success.set(xlabel="wall-clock minutes of training (one core each)", ylabel="clean success, % (95 % CI)", ylim=(-5, 105))
+for ax in (ax_loss, ax_success):
+    ax.grid(alpha=0.3)
+    ax.legend()
+fig.suptitle(f"act_modified standard from scratch, {task}, 96x128: backbone normalization")
+fig.tight_layout()
+fig.savefig(csv_dir / f"{task}_standard_backbone_norm.png", dpi=110)
 PY
-done
