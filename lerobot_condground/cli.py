@@ -25,6 +25,10 @@ COMMANDS = {
         "augment",
         "Write a copy of a LeRobotDataset with synthetic distractors pasted in (copy-paste augmentation).",
     ),
+    "train": (
+        "train",
+        "lerobot-train (same flags, same outputs) with decoded video frames held in memory: faster on a CPU.",
+    ),
     "quickstart": (
         "quickstart",
         "Record demos, train a small act_modified (lerobot-train), evaluate it (lerobot-eval), print stages.",

@@ -171,6 +171,7 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
     segmentation_key: str = "observation.segmentation"
     _bank: torch.Tensor | None = field(default=None, init=False, repr=False)
     _canvases: dict = field(default_factory=dict, init=False, repr=False)
+    _shading: torch.Tensor | None = field(default=None, init=False, repr=False)
     _generator: torch.Generator = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -212,6 +213,7 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         self._bank = state["sprites"].detach().to("cpu", torch.float32).contiguous()
         self._canvases.clear()
+        self._shading = None
         self._generator.set_state(state["generator_state"].to("cpu", torch.uint8))
 
     def transform_features(
@@ -269,8 +271,7 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
         seg = segmentation.clone()
         canvases = self._sprite_canvases(height, width, device)
         palette = torch.tensor([COLORS[c] for c in AUGMENTATION_COLORS], device=device)
-        bank = self._sprite_bank()
-        shading_median = _masked_median(bank[:, :1], bank[:, 1] > 0.5)[:, 0].to(device)  # (sprites,)
+        shading_median = self._shading_median(device)  # (sprites,)
 
         targets = torch.stack([segmentation == label for label in ROLE_LABELS], 1)  # (B, 2, H, W)
         target_pixels = targets.flatten(2).sum(-1)  # (B, 2)
@@ -295,6 +296,8 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
 
         for slot in range(self.max_count):
             active, role = draws["active"][slot], draws["role"][slot]
+            if not active.any():
+                continue
             category = torch.where(visible[rows, role], draws["category"][slot], NEITHER)
             is_copy = (category == SAME_SHAPE).view(batch, 1, 1, 1)
             color = palette[draws["color"][slot]]  # (B, 3)
@@ -330,23 +333,26 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
                 height,
                 width,
             )  # (B, K, 2, 3)
-            cand = _warp(alpha.repeat_interleave(CANDIDATES, 0), theta.flatten(0, 1)).view(
-                batch, CANDIDATES, height, width
+            # Only the samples this slot pastes into are warped (most of the step's time is grid_sample).
+            on = active.nonzero().squeeze(1)
+            cand = _warp(alpha[on].repeat_interleave(CANDIDATES, 0), theta[on].flatten(0, 1)).view(
+                len(on), CANDIDATES, height, width
             )
             cand = cand > 0.5
             # Covered target pixels if this candidate were pasted on top of what is already there.
             cover = (
-                (covered.unsqueeze(1) | (cand.unsqueeze(2) & targets.unsqueeze(1))).flatten(3).sum(-1)
-            )  # (B, K, 2)
-            fraction = (cover / target_pixels.clamp(min=1).unsqueeze(1)).amax(-1)  # (B, K)
+                (covered[on].unsqueeze(1) | (cand.unsqueeze(2) & targets[on].unsqueeze(1))).flatten(3).sum(-1)
+            )  # (n, K, 2)
+            fraction = (cover / target_pixels[on].clamp(min=1).unsqueeze(1)).amax(-1)  # (n, K)
             best = fraction.argmin(1)
-            keep = active & (fraction[rows, best] <= self.max_occlusion)
-            pasted = _warp(source, theta[rows, best])
-            mask = (pasted[:, 3] > 0.5) & keep.view(batch, 1, 1)
+            picked = torch.arange(len(on), device=device)
+            keep = fraction[picked, best] <= self.max_occlusion
+            pasted = _warp(source[on], theta[on, best])
+            mask = (pasted[:, 3] > 0.5) & keep.view(-1, 1, 1)
             rgb = (pasted[:, :3] / pasted[:, 3:].clamp(min=1e-6)).clamp(0.0, 1.0)
-            out = torch.where(mask.unsqueeze(1), rgb, out)
-            seg = seg.masked_fill(mask, SYNTHETIC_DISTRACTOR)
-            covered |= mask.unsqueeze(1) & targets
+            out[on] = torch.where(mask.unsqueeze(1), rgb, out[on])
+            seg[on] = seg[on].masked_fill(mask, SYNTHETIC_DISTRACTOR)
+            covered[on] |= mask.unsqueeze(1) & targets[on]
         return out.to(images.dtype), seg
 
     # ------------------------------------------------------------------ sprites
@@ -357,6 +363,13 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
 
             self._bank = render_sprite_bank()
         return self._bank
+
+    def _shading_median(self, device: torch.device) -> torch.Tensor:
+        """Median shading of each sprite under its alpha: what a same-color paste is tinted against."""
+        if self._shading is None:
+            bank = self._sprite_bank()
+            self._shading = _masked_median(bank[:, :1], bank[:, 1] > 0.5)[:, 0]
+        return self._shading.to(device)
 
     def _sprite_canvases(self, height: int, width: int, device: torch.device) -> torch.Tensor:
         """(sprites, 2, H, W): the bank scaled to the frames' pixel size, each sprite centered on a

@@ -111,6 +111,8 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
         "quickstart",
         f"--output_dir={tmp_path}",
         "--episodes_per_task=1",
+        "--train.episodes=1",
+        "--train.variant=full",
         "--expert_episodes=1",
         "--train.steps=2",
         "--train.batch_size=2",

@@ -17,6 +17,7 @@ import numpy as np
 
 from lerobot_condground.bench.policy import PolicyBenchConfig
 from lerobot_condground.bench.sweep import SweepBenchConfig
+from lerobot_condground.bench.training import TrainBenchConfig
 
 
 @dataclass
@@ -34,6 +35,8 @@ class BenchConfig:
     policy: PolicyBenchConfig = field(default_factory=PolicyBenchConfig)
     # Sweep rollouts per minute and the speed-up with parallel workers.
     sweep: SweepBenchConfig = field(default_factory=SweepBenchConfig)
+    # Training samples/s at the CPU training configuration, on its own small Task 1 dataset.
+    train: TrainBenchConfig = field(default_factory=TrainBenchConfig)
     # Print one JSON object instead of a table.
     json: bool = False
 
@@ -163,13 +166,39 @@ def run_bench(cfg: BenchConfig) -> dict:
                 "local/bench", f"{tmp}/ds", Path(tmp) / "checkpoint", cfg.sweep
             )
             results |= bench_sweep(checkpoint, cfg.task, cfg.condition, cfg.sweep, tmp)
+        if cfg.train.enable:
+            from lerobot_condground.bench.training import bench_training
+            from lerobot_condground.core.training import CPU_FRAME_SIZE
+
+            height, width = CPU_FRAME_SIZE
+            record(
+                RecordConfig(
+                    env=CondGroundEnvConfig(
+                        task="PickPlaceFixedBin-v0", observation_height=height, observation_width=width
+                    ),
+                    dataset=RecordDatasetConfig(
+                        repo_id="local/bench_train", root=f"{tmp}/train_ds", num_episodes=cfg.train.episodes
+                    ),
+                    progress=False,
+                )
+            )
+            results |= bench_training("local/bench_train", f"{tmp}/train_ds", cfg.train, cfg.rounds)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
     if cfg.json:
         print(json.dumps(results))
     else:
-        width = max(len(k) for k in results)
-        for key, value in results.items():
+        rows = dict(_flat(results))
+        width = max(len(k) for k in rows)
+        for key, value in rows.items():
             print(f"{key:<{width}}  {value:.2f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
     return results
+
+
+def _flat(results: dict, prefix: str = ""):
+    for key, value in results.items():
+        if isinstance(value, dict):
+            yield from _flat(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value

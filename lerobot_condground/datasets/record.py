@@ -198,6 +198,14 @@ def record(cfg: RecordConfig) -> dict:
 
     from lerobot_condground.envs.expert import ScriptedExpert, run_expert_episode
 
+    # SVT-AV1 (LeRobot's video encoder) prints a 20-line banner to stderr for every encoded episode; at
+    # level 1 (errors) it stays quiet. Read by the library at each encoder start; a user's value wins.
+    os.environ.setdefault("SVT_LOG", "1")
+    # The recording shows its own progress: no `datasets` bar and codec line per saved episode.
+    import datasets
+
+    datasets.disable_progress_bars()
+    logging.getLogger("lerobot.configs.video").setLevel(logging.WARNING)
     features = dataset_features(cfg.env, cfg.dataset.video, cfg.dataset.labels)
     env = make_recording_env(
         cfg.env, cfg.dataset.labels

@@ -33,6 +33,8 @@ from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, Co
 
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
 BACKBONE_NORMS = ("frozen_batchnorm", "batchnorm", "groupnorm")
+# Blocks per stage of the basic-block ResNets a narrower backbone can copy.
+NARROW_RESNET_LAYERS = {"resnet18": (2, 2, 2, 2), "resnet34": (3, 4, 6, 3)}
 VARIANTS: dict[str, dict[str, bool]] = {
     "standard": dict.fromkeys(COMPONENTS, False),
     "augmentation": {**dict.fromkeys(COMPONENTS, False), "use_copy_paste": True},
@@ -96,6 +98,10 @@ class ACTModifiedConfig(ACTConfig):
     # weights), batchnorm or groupnorm (32 groups). Trained from scratch (pretrained_backbone_weights=None),
     # frozen batch norm is an identity: the backbone then has no normalization at all.
     backbone_norm: str = "frozen_batchnorm"
+    # Channels of the ResNet's first stage (each later stage doubles them). 64 is torchvision's ResNet
+    # (`vision_backbone`, loadable with ImageNet weights); smaller widths build the same layout narrower
+    # (timm's ResNet), trained from scratch: half the width is about a quarter of the backbone's compute.
+    backbone_width: int = 64
 
     # Warm start: a stock `act` (or `act_modified`) checkpoint, local directory or hub id, whose
     # weights initialize the shared ACT parameters; the new heads start fresh.
@@ -133,8 +139,36 @@ class ACTModifiedConfig(ACTConfig):
                 f"{self.pretrained_backbone_weights!r} (batch-norm statistics); allowed with pretrained "
                 "weights: frozen_batchnorm, batchnorm"
             )
+        if self.backbone_width != 64:
+            self._check_narrow_backbone()
         if self.use_copy_paste:
             self.make_copy_paste_step()  # validates the copy_paste_* values now, at parse time
+
+    def _check_narrow_backbone(self) -> None:
+        if self.backbone_width < 8 or self.backbone_width % 8:
+            raise ValueError(
+                f"backbone_width={self.backbone_width} must be a positive multiple of 8 (64: torchvision's)"
+            )
+        if self.vision_backbone not in NARROW_RESNET_LAYERS:
+            raise ValueError(
+                f"backbone_width={self.backbone_width} needs a basic-block ResNet; vision_backbone="
+                f"{self.vision_backbone!r} is not one of: {', '.join(NARROW_RESNET_LAYERS)}"
+            )
+        if self.pretrained_backbone_weights:
+            raise ValueError(
+                f"backbone_width={self.backbone_width} is trained from scratch; pretrained_backbone_weights="
+                f"{self.pretrained_backbone_weights!r} only fits backbone_width=64 (set it to null)"
+            )
+        if self.backbone_norm == "frozen_batchnorm":
+            raise ValueError(
+                f"backbone_width={self.backbone_width} is trained from scratch, where frozen batch norm normalizes "
+                "nothing; allowed: backbone_norm=batchnorm or groupnorm"
+            )
+        if self.backbone_norm == "groupnorm" and self.backbone_width % 32:
+            raise ValueError(
+                f"backbone_norm=groupnorm uses 32 groups, so backbone_width={self.backbone_width} must be a "
+                "multiple of 32 (or use backbone_norm=batchnorm)"
+            )
 
     def make_copy_paste_step(self):
         return CopyPasteDistractorStep(

@@ -42,7 +42,7 @@ from lerobot_condground.core.labels import (
     phase_masks,
 )
 
-from .configuration_act_modified import ACTModifiedConfig
+from .configuration_act_modified import NARROW_RESNET_LAYERS, ACTModifiedConfig
 
 logger = logging.getLogger(__name__)
 
@@ -85,22 +85,42 @@ def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head:
 def _norm_layer(name: str):
     if name == "batchnorm":
         return nn.BatchNorm2d
-    return lambda channels: nn.GroupNorm(32, channels)
+    return lambda channels, **_: nn.GroupNorm(32, channels)
+
+
+def _resnet(config: ACTModifiedConfig) -> nn.Module:
+    norm_layer = _norm_layer(config.backbone_norm)
+    if config.backbone_width == 64:
+        return getattr(torchvision.models, config.vision_backbone)(
+            replace_stride_with_dilation=[False, False, config.replace_final_stride_with_dilation],
+            weights=config.pretrained_backbone_weights,
+            norm_layer=norm_layer,
+        )
+    from timm.models.resnet import BasicBlock, ResNet
+
+    width = config.backbone_width
+    return ResNet(
+        BasicBlock,
+        NARROW_RESNET_LAYERS[config.vision_backbone],
+        channels=(width, 2 * width, 4 * width, 8 * width),
+        stem_width=width,
+        norm_layer=norm_layer,
+    )
 
 
 class ACTModified(ACT):
     def __init__(self, config: ACTModifiedConfig):
         super().__init__(config)
         dim = config.dim_model
-        if config.image_features and config.backbone_norm != "frozen_batchnorm":
+        if config.image_features and (
+            config.backbone_norm != "frozen_batchnorm" or config.backbone_width != 64
+        ):
             # ACT builds its ResNet with FrozenBatchNorm2d whatever the weights; rebuilt the same way with
-            # normalization that trains.
-            resnet = getattr(torchvision.models, config.vision_backbone)(
-                replace_stride_with_dilation=[False, False, config.replace_final_stride_with_dilation],
-                weights=config.pretrained_backbone_weights,
-                norm_layer=_norm_layer(config.backbone_norm),
-            )
+            # normalization that trains, and narrower if asked.
+            resnet = _resnet(config)
             self.backbone = IntermediateLayerGetter(resnet, return_layers={"layer4": "feature_map"})
+            if config.backbone_width != 64:
+                self.encoder_img_feat_input_proj = nn.Conv2d(resnet.fc.in_features, dim, kernel_size=1)
         if config.use_phase_predictor:
             pooled = self.encoder_img_feat_input_proj.in_channels * len(config.image_features)
             state = config.robot_state_feature.shape[0] if config.robot_state_feature else 0

@@ -22,6 +22,10 @@ def test_bench_json_reports_every_figure():
         "--sweep.batch_size=2",
         "--sweep.episode_length=10",
         "--sweep.dim_model=64",
+        "--train.episodes=1",
+        "--train.batch_size=2",
+        "--train.steps=1",
+        "--train.dim_model=32",
     )
     result = json.loads(out.stdout.strip().splitlines()[-1])
     for key in (
@@ -46,3 +50,16 @@ def test_bench_json_reports_every_figure():
         result["sweep_speedup_2_workers"]
         == result["sweep_rollouts_per_min_2_workers"] / result["sweep_rollouts_per_min_1_workers"]
     )
+    # Training throughput at the CPU configuration, beside stock ACT and today's path, in the same run.
+    assert set(result["train_samples_per_s"]) == {
+        "standard",
+        "augmentation",
+        "augmentation_attention",
+        "full",
+    }
+    assert all(rate > 0 for rate in result["train_samples_per_s"].values())
+    assert result["train_samples_per_s_act"] > 0 and result["train_samples_per_s_full_plain"] > 0
+    assert result["train_speedup_vs_plain"] > 0 and result["train_cache_speedup"] > 0
+    assert result["train_threads"] == 1 and result["train_batch_size"] == 2
+    split = result["train_step_split_s"]["full"]
+    assert split["data"] > 0 and split["preprocess"] > 0 and split["update"] > 0

@@ -152,6 +152,58 @@ def test_backbone_norm_trains_where_frozen_batch_norm_is_an_identity(norm, layer
     assert torch.isfinite(action).all()
 
 
+@pytest.mark.parametrize("variant", ["standard", "full"])
+def test_narrow_backbone_halves_every_stage_and_trains(variant):
+    """backbone_width=32: ResNet-18's layout at half the channels, its feature map projected like ACT's,
+    trained end to end (the phase head and prompt encoder read the narrower features too)."""
+    wide = make_policy(variant=variant, backbone_norm="batchnorm")
+    policy = make_policy(variant=variant, backbone_norm="batchnorm", backbone_width=32)
+    feature_map = policy.model.backbone(torch.rand(B, 3, H, W))["feature_map"]
+    assert feature_map.shape[1] == 256 == policy.model.encoder_img_feat_input_proj.in_channels
+    assert feature_map.shape[2:] == wide.model.backbone(torch.rand(B, 3, H, W))["feature_map"].shape[2:]
+    count = lambda m: sum(p.numel() for p in m.backbone.parameters())  # noqa: E731
+    assert 0.2 < count(policy.model) / count(wide.model) < 0.3
+    policy.train()
+    loss, _ = policy(make_batch())
+    loss.backward()
+    assert policy.model.backbone.conv1.weight.grad.abs().sum() > 0
+    policy.eval()
+    assert torch.isfinite(policy.select_action(observation(make_batch(1)))).all()
+
+
+def test_every_loss_term_holds_under_bf16_autocast():
+    """lerobot-train --policy.use_amp=true runs forward under bf16 autocast: the recomputed attention softmax,
+    the phase cross-entropy, the attention terms and the prompt encoding must stay within bf16 rounding of
+    fp32 (dropout off, so both passes compute the same function)."""
+    policy = make_policy(variant="full", dropout=0.0, backbone_norm="batchnorm", backbone_width=32)
+    policy.train()
+    batch = make_batch()
+    torch.manual_seed(1)  # the same CVAE sample in both passes
+    _, fp32 = policy(batch)
+    torch.manual_seed(1)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, bf16 = policy(batch)
+    assert loss.dtype == torch.float32 and torch.isfinite(loss)
+    assert (
+        fp32.keys()
+        == bf16.keys()
+        >= {"l1_loss", "phase_loss", "attention_on_relevant", "attention_on_distractors"}
+    )
+    for key in fp32:
+        assert bf16[key] == pytest.approx(fp32[key], rel=0.05, abs=0.01), key
+
+
+def test_cpu_training_configuration_parses_as_lerobot_train_flags():
+    """The flags the quickstart and the learning-curve script hand to lerobot-train build a valid policy."""
+    import draccus
+
+    from lerobot_condground.core.training import CPU_POLICY, policy_flags
+
+    args = [flag.removeprefix("--policy.") for flag in policy_flags()]
+    cfg = draccus.parse(ACTModifiedConfig, args=[f"--{a}" for a in args])
+    assert {key: getattr(cfg, key) for key in CPU_POLICY} == CPU_POLICY
+
+
 def test_supervised_head_attention_is_the_heads_softmax():
     policy = make_policy(variant="augmentation_attention", attention_head=2)
     policy.eval()
@@ -251,6 +303,18 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (
             dict(backbone_norm="groupnorm", pretrained_backbone_weights="ResNet18_Weights.IMAGENET1K_V1"),
             "groupnorm",
+        ),
+        (dict(backbone_width=20, backbone_norm="batchnorm"), "backbone_width=20"),
+        (dict(backbone_width=32), "frozen batch norm normalizes nothing"),
+        (dict(backbone_width=32, backbone_norm="batchnorm", vision_backbone="resnet50"), "resnet50"),
+        (dict(backbone_width=48, backbone_norm="groupnorm"), "multiple of 32"),
+        (
+            dict(
+                backbone_width=32,
+                backbone_norm="batchnorm",
+                pretrained_backbone_weights="ResNet18_Weights.IMAGENET1K_V1",
+            ),
+            "set it to null",
         ),
     ],
 )

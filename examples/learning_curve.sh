@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Learning curves on this machine: act_modified trained from scratch with the CPU training configuration
+# (lerobot_condground/core/training.py) by LeRobot's training loop ($TRAIN: `condground train`, which
+# holds decoded frames in memory, or the stock `lerobot-train`), runs side by side for the same
+# wall-clock budget (one core each), then every saved checkpoint evaluated on clean scenes with
+# `condground sweep`. Writes docs/learning-curve/<task>_<variant>.csv (minutes,steps,samples,success,n,
+# ci_low,ci_high; 95 % Wilson intervals) and one plot per task.
+#
+#   RUNS="PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard" MINUTES=60 bash examples/learning_curve.sh
+#
+# A run is TASK:VARIANT[:FLAG,FLAG...] (extra lerobot-train flags, comma-separated, applied after the
+# configuration's). Rerunning skips finished training runs and evaluations; a run is named by its spec.
+set -euo pipefail
+OUT=${OUT:-outputs/learning-curve}
+RUNS=${RUNS:-"PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard"}
+MINUTES=${MINUTES:-60}
+EVERY=${EVERY:-1000}        # steps between saved (and evaluated) checkpoints
+EPISODES=${EPISODES:-50}    # clean rollouts per checkpoint
+THREADS=${THREADS:-1}       # torch threads per training run
+TRAIN=${TRAIN:-condground train}
+CSV_DIR=${CSV_DIR:-docs/learning-curve}
+export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 WANDB_MODE=disabled
+read -r -a TRAIN_FLAGS <<< "$(python -m lerobot_condground.core.training)"
+SIZE=$(python -c "from lerobot_condground.core.training import CPU_FRAME_SIZE as s; print(s[0], s[1])")
+
+name() { echo "$1" | tr ':,=./' '_____'; }
+
+for task in $(for run in $RUNS; do echo "${run%%:*}"; done | sort -u); do
+  [ -f "$OUT/data/$task/meta/info.json" ] || condground record --env.task="$task" --env.condition=clean \
+    --env.observation_height="${SIZE% *}" --env.observation_width="${SIZE#* }" \
+    --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task" --dataset.num_episodes=100 --progress=false
+done
+
+for run in $RUNS; do
+  IFS=: read -r task variant extra <<< "$run"
+  dir="$OUT/train/$(name "$run")"
+  [ -d "$dir/checkpoints" ] && continue
+  mkdir -p "$OUT/train"
+  date +%s > "$dir.start"
+  # shellcheck disable=SC2086
+  OMP_NUM_THREADS=$THREADS MKL_NUM_THREADS=$THREADS timeout "${MINUTES}m" $TRAIN --policy.type=act_modified \
+    --policy.variant="$variant" --policy.device=cpu --policy.push_to_hub=false "${TRAIN_FLAGS[@]}" ${extra//,/ } \
+    --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task" --steps=1000000 --save_freq="$EVERY" \
+    --log_freq=50 --num_workers=0 --wandb.enable=false --seed=0 --output_dir="$dir" > "$dir.log" 2>&1 &
+done
+wait
+
+for run in $RUNS; do
+  task=${run%%:*}
+  dir="$OUT/train/$(name "$run")"
+  for ckpt in "$dir"/checkpoints/[0-9]*/pretrained_model; do
+    step=$(basename "$(dirname "$ckpt")")
+    [ -f "$OUT/eval/$(name "$run")/$step/results.parquet" ] || condground sweep --policy.paths="$ckpt" \
+      --env.task="$task" --sweep.conditions=clean --eval.seeds=1 --eval.n_episodes="$EPISODES" \
+      --output_dir="$OUT/eval/$(name "$run")/$step" --progress=false
+  done
+done
+
+python examples/learning_curve.py --out="$OUT" --csv_dir="$CSV_DIR" $RUNS

@@ -1,0 +1,42 @@
+"""The training configuration that learns on a 2-core CPU, as `lerobot-train` flags.
+
+Measured in `docs/learning-curve/` (README, "Learning from scratch on this CPU"): a quarter-width
+ResNet-18 with batch norm trained from scratch (ImageNet weights cannot be downloaded everywhere,
+and LeRobot's frozen batch norm is an identity without them), a small transformer (width 128, two
+encoder layers), no CVAE (the demonstrations are scripted, one mode per state), 96x128 frames.
+The quickstart, the learning-curve example and the benchmark all read it from here.
+"""
+
+from __future__ import annotations
+
+# Frame size the configuration was measured at (condground record --env.observation_height/width).
+CPU_FRAME_SIZE = (96, 128)
+
+CPU_POLICY = {
+    "pretrained_backbone_weights": None,
+    "backbone_width": 16,
+    "backbone_norm": "batchnorm",
+    "dim_model": 128,
+    "n_heads": 8,
+    "dim_feedforward": 512,
+    "n_encoder_layers": 2,
+    "use_vae": False,
+    "chunk_size": 20,
+    "n_action_steps": 10,
+    "optimizer_lr": 3e-4,
+    "optimizer_lr_backbone": 3e-4,
+}
+CPU_BATCH_SIZE = 16
+
+
+def policy_flags(policy: dict | None = None) -> list[str]:
+    """`--policy.key=value` flags for lerobot-train (None as null, booleans lowercase)."""
+    flags = []
+    for key, value in (CPU_POLICY if policy is None else policy).items():
+        text = "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+        flags.append(f"--policy.{key}={text}")
+    return flags
+
+
+if __name__ == "__main__":  # for shell scripts: `python -m lerobot_condground.core.training`
+    print(" ".join([*policy_flags(), f"--batch_size={CPU_BATCH_SIZE}"]))
