@@ -193,6 +193,7 @@ def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
 
 def record(cfg: RecordConfig) -> dict:
     """Records until the dataset holds `num_episodes` expert episodes. Returns counts for the report."""
+    import datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from tqdm import tqdm
 
@@ -201,10 +202,7 @@ def record(cfg: RecordConfig) -> dict:
     # SVT-AV1 (LeRobot's video encoder) prints a 20-line banner to stderr for every encoded episode; at
     # level 1 (errors) it stays quiet. Read by the library at each encoder start; a user's value wins.
     os.environ.setdefault("SVT_LOG", "1")
-    # The recording shows its own progress: no `datasets` bar and codec line per saved episode.
-    import datasets
-
-    datasets.disable_progress_bars()
+    # The recording shows its own progress: no codec line per saved episode (nor `datasets` bar, below).
     logging.getLogger("lerobot.configs.video").setLevel(logging.WARNING)
     features = dataset_features(cfg.env, cfg.dataset.video, cfg.dataset.labels)
     env = make_recording_env(
@@ -265,6 +263,8 @@ def record(cfg: RecordConfig) -> dict:
             _write_provenance(root, cfg, state)  # before the data, so a resumed run never reuses a seed
             for frame in frames:
                 dataset.add_frame(frame)
+            # LeRobot re-enables `datasets` bars after every dataset load (SuppressProgressBars).
+            datasets.disable_progress_bars()
             dataset.save_episode()
             have += 1
             bar.update(1)
