@@ -29,10 +29,10 @@ CPU_POLICY = {
 CPU_BATCH_SIZE = 16
 
 
-def policy_flags(policy: dict | None = None) -> list[str]:
-    """`--policy.key=value` flags for lerobot-train (None as null, booleans lowercase)."""
+def policy_flags() -> list[str]:
+    """The configuration as `--policy.key=value` flags for lerobot-train (None as null, booleans lowercase)."""
     flags = []
-    for key, value in (CPU_POLICY if policy is None else policy).items():
+    for key, value in CPU_POLICY.items():
         text = "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
         flags.append(f"--policy.{key}={text}")
     return flags

@@ -1,4 +1,4 @@
-"""`condground quickstart`: the whole pipeline, with a policy that learns, in about 20 minutes on 2 CPU cores.
+"""`condground quickstart`: the whole pipeline, trained from scratch, in about 20 minutes on 2 CPU cores.
 
 1. records expert demonstrations of each task (LeRobotDatasets with masks, phases, prompts): enough of
    Task 1 to learn from, a few of Task 2 to look at,
@@ -10,7 +10,8 @@
    representation diagnostics, the prompt-swap probe (variants with prompts) and an attention video,
    then writes the report.
 
-Rerunning reuses the datasets and the trained checkpoint.
+Twenty minutes of CPU training reach about 10 % clean success on Task 1, not a trained policy
+(docs/learning-curve). Rerunning reuses the datasets and the trained checkpoint.
 """
 
 from __future__ import annotations
