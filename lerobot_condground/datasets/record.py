@@ -166,6 +166,9 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
                 f"choose another --dataset.root or record with the same settings to resume it"
             )
         dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=False)
+        # A hard kill leaves the frames of the episode in flight on disk, the last one maybe truncated;
+        # LeRobot would encode them into the next episode's video along with its own.
+        dataset.clear_episode_buffer(delete_images=True)
         return dataset, previous
     # Not LeRobot's streaming encoder: when its queue is full (a busy CPU, our burst of add_frame calls)
     # it drops frames with only a warning, and the video ends up shorter than the episode.

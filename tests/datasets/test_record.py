@@ -135,6 +135,10 @@ def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
     ds = LeRobotDataset("local/kill", root=root)
     assert ds.meta.total_episodes >= 2
     ds[len(ds) - 1]  # the last frame decodes
+    # What a kill inside the image writer leaves: a truncated frame of the episode in flight.
+    in_flight = root / "images" / "observation.images.top" / f"episode-{ds.meta.total_episodes:06d}"
+    in_flight.mkdir(parents=True, exist_ok=True)
+    (in_flight / "frame-000999.png").write_bytes(b"\x89PNG\r\n")
     out = run_cli(
         "condground",
         "record",
@@ -144,7 +148,17 @@ def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
         "--env.observation_width=128",
     )
     assert "expert success: 1/1" in out.stdout
-    total = LeRobotDataset("local/kill", root=root).meta.total_episodes
+    resumed = LeRobotDataset("local/kill", root=root)
+    total = resumed.meta.total_episodes
+    last = resumed.meta.episodes[total - 1]
+    video_frames = round(
+        (
+            last["videos/observation.images.top/to_timestamp"]
+            - last["videos/observation.images.top/from_timestamp"]
+        )
+        * resumed.fps
+    )
+    assert video_frames == last["length"]  # no frame of the killed episode in the resumed one's video
     seeds = [e["seed"] for e in read_json(root / RECORD_FILE)["episodes"]]
     assert len(seeds) == total and len(set(seeds)) == total
 
