@@ -27,10 +27,42 @@ def run_name(run: str) -> str:
     return re.sub(r"[:,=./]", "_", run)
 
 
+def training_minutes(segments: list[list[float]], t: float) -> float:
+    """Wall-clock minutes of training up to time t, over the run's "start stop" segments (resumes)."""
+    done = 0.0
+    for segment in segments:
+        if len(segment) == 2 and t > segment[1]:
+            done += segment[1] - segment[0]
+        else:
+            return (done + t - segment[0]) / 60
+    raise ValueError(f"time {t} is after every training segment {segments}")
+
+
+def losses(out: Path, name: str, log_freq: int) -> pd.DataFrame:
+    # The first segment's log, then one per resume named by the step it went on from; lerobot-train logs
+    # the step rounded (1K, 2K, ...), a logged line every log_freq steps.
+    logs = {0: out / "train" / f"{name}.log"}
+    for log in (out / "train").glob(f"{name}.resume-*.log"):
+        logs[int(log.stem.rsplit("-", 1)[1])] = log
+    firsts = sorted(logs)
+    rows = []
+    for first, until in zip(firsts, [*firsts[1:], float("inf")], strict=True):
+        values = [float(v) for v in re.findall(r"step:\S+ .*?l1_loss:([0-9.]+)", logs[first].read_text())]
+        rows += [
+            (first + log_freq * (i + 1), v)
+            for i, v in enumerate(values)
+            if first + log_freq * (i + 1) <= until
+        ]
+    return pd.DataFrame(rows, columns=["steps", "l1_loss"])
+
+
 def curve(out: Path, run: str) -> tuple[pd.DataFrame, pd.DataFrame]:
     name = run_name(run)
     train = out / "train" / name
-    start = float((out / "train" / f"{name}.start").read_text())
+    segments = [
+        [float(v) for v in line.split()]
+        for line in (out / "train" / f"{name}.start").read_text().splitlines()
+    ]
     train_config = json.loads(
         next(train.glob("checkpoints/*/pretrained_model/train_config.json")).read_text()
     )
@@ -42,7 +74,7 @@ def curve(out: Path, run: str) -> tuple[pd.DataFrame, pd.DataFrame]:
         step = int(results.parent.name)
         rows.append(
             {
-                "minutes": round((saved - start) / 60, 1),
+                "minutes": round(training_minutes(segments, saved), 1),
                 "steps": step,
                 "samples": step * batch,
                 "success": metrics["success"],
@@ -52,11 +84,7 @@ def curve(out: Path, run: str) -> tuple[pd.DataFrame, pd.DataFrame]:
                 "p_pick": metrics["p_pick"],
             }
         )
-    log = (out / "train" / f"{name}.log").read_text()
-    # lerobot-train logs the step rounded (1K, 2K, ...); a logged line is every log_freq steps.
-    losses = [float(v) for v in re.findall(r"step:\S+ .*?l1_loss:([0-9.]+)", log)]
-    steps = [log_freq * (i + 1) for i in range(len(losses))]
-    return pd.DataFrame(rows).sort_values("steps"), pd.DataFrame({"steps": steps, "l1_loss": losses})
+    return pd.DataFrame(rows).sort_values("steps"), losses(out, name, log_freq)
 
 
 def main() -> None:

@@ -9,7 +9,8 @@
 #   RUNS="PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard" MINUTES=60 bash examples/learning_curve.sh
 #
 # A run is TASK:VARIANT[:FLAG,FLAG...] (extra lerobot-train flags, comma-separated, applied after the
-# configuration's). Rerunning skips finished training runs and evaluations; a run is named by its spec.
+# configuration's). A run is named by its spec. MINUTES is each run's total training time: rerunning skips
+# finished evaluations and runs that had their MINUTES, and resumes the others from their last checkpoint.
 set -euo pipefail
 OUT=${OUT:-outputs/learning-curve}
 RUNS=${RUNS:-"PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard"}
@@ -31,21 +32,38 @@ for task in $(for run in $RUNS; do echo "${run%%:*}"; done | sort -u); do
     --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task" --dataset.num_episodes=100 --progress=false
 done
 
+trained_s() { awk 'NF == 2 {t += $2 - $1} END {print t + 0}' "$1.start" 2>/dev/null || echo 0; }
+
 for run in $RUNS; do
   IFS=: read -r task variant extra <<< "$run"
   dir="$OUT/train/$(name "$run")"
-  [ -d "$dir/checkpoints" ] && continue
+  left=$((MINUTES * 60 - $(trained_s "$dir")))
+  [ "$left" -gt 60 ] || continue
   mkdir -p "$OUT/train"
-  date +%s > "$dir.start"
-  # shellcheck disable=SC2086
-  OMP_NUM_THREADS=$THREADS MKL_NUM_THREADS=$THREADS timeout "${MINUTES}m" $TRAIN --policy.type=act_modified \
-    --policy.variant="$variant" --policy.device=cpu --policy.push_to_hub=false "${TRAIN_FLAGS[@]}" ${extra//,/ } \
-    --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task" --steps=1000000 --save_freq="$EVERY" \
-    --log_freq=50 --num_workers=0 --wandb.enable=false --seed=0 --output_dir="$dir" > "$dir.log" 2>&1 &
+  if [ -d "$dir/checkpoints/last" ]; then  # a larger MINUTES: go on from the last checkpoint
+    step=$((10#$(basename "$(readlink -f "$dir/checkpoints/last")")))
+    args=(--config_path="$dir/checkpoints/last/pretrained_model/train_config.json" --resume=true
+      --save_freq="$EVERY")
+    log="$dir.resume-$step.log"
+  else
+    # shellcheck disable=SC2206
+    args=(--policy.type=act_modified --policy.variant="$variant" --policy.device=cpu --policy.push_to_hub=false
+      "${TRAIN_FLAGS[@]}" ${extra//,/ } --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task"
+      --steps=1000000 --save_freq="$EVERY" --log_freq=50 --num_workers=0 --wandb.enable=false --seed=0
+      --output_dir="$dir")
+    log="$dir.log"
+  fi
+  # Each training segment appends "start stop" (epoch seconds): the curve's minutes add them up.
+  (
+    start=$(date +%s)
+    # shellcheck disable=SC2086
+    OMP_NUM_THREADS=$THREADS MKL_NUM_THREADS=$THREADS timeout "${left}s" $TRAIN "${args[@]}" > "$log" 2>&1 || true
+    echo "$start $(date +%s)" >> "$dir.start"
+  ) &
 done
 wait
 
-for run in $RUNS; do
+for run in $RUNS; do  # one run's checkpoints after another, the runs side by side
   task=${run%%:*}
   dir="$OUT/train/$(name "$run")"
   for ckpt in "$dir"/checkpoints/[0-9]*/pretrained_model; do
@@ -53,7 +71,8 @@ for run in $RUNS; do
     [ -f "$OUT/eval/$(name "$run")/$step/results.parquet" ] || condground sweep --policy.paths="$ckpt" \
       --env.task="$task" --sweep.conditions=clean --eval.seeds=1 --eval.n_episodes="$EPISODES" \
       --output_dir="$OUT/eval/$(name "$run")/$step" --progress=false
-  done
+  done &
 done
+wait
 
 python examples/learning_curve.py --out="$OUT" --csv_dir="$CSV_DIR" $RUNS

@@ -62,7 +62,7 @@ COMMANDS = {
         "Per-frame tracking latency of the prompt segmenters (color, SAM 2) on this machine.",
     ),
 }
-BAD_INPUT = (ValueError, FileNotFoundError, FileExistsError, draccus.utils.ParsingError)
+BAD_INPUT = (ValueError, FileNotFoundError, FileExistsError, PermissionError, draccus.utils.ParsingError)
 
 
 def _usage() -> str:

@@ -23,6 +23,9 @@ class PolicyRefConfig:
     label: str | None = None
     # cpu, cuda, mps, xpu; default: the best one here (LeRobot's auto_select_torch_device).
     device: str | None = None
+    # A checkpoint's processor files may name any Python class, which LeRobot imports and calls; only steps
+    # registered by installed code load unless this is true (the hub's convention for running a repo's code).
+    trust_remote_code: bool = False
 
     def checkpoints(self) -> list[str]:
         """Every checkpoint named by --policy.path and --policy.paths, in order."""

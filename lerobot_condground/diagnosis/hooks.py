@@ -64,10 +64,16 @@ def load_act_family(policy: PolicyRefConfig, env: EvalEnvConfig, condition: str 
     if not policy.checkpoints():
         raise ValueError("--policy.path is required: an ACT-family checkpoint directory or hub id")
     path = policy.single()
-    described = describe_checkpoint(path, policy.label)
+    described = describe_checkpoint(path, policy.label, trust_remote_code=policy.trust_remote_code)
     check_act_family(described)
     spec = env_spec_for(env, described, condition)
-    loaded = load_policy(path, spec.lerobot_config(), resolve_device(policy.device), policy.label)
+    loaded = load_policy(
+        path,
+        spec.lerobot_config(),
+        resolve_device(policy.device),
+        policy.label,
+        trust_remote_code=policy.trust_remote_code,
+    )
     return loaded, spec
 
 

@@ -63,7 +63,7 @@ def run_probe(cfg: ProbeConfig) -> Path:
             "as --probe.role and --probe.match"
         )
     path = cfg.policy.single()
-    loaded = describe_checkpoint(path, cfg.policy.label)
+    loaded = describe_checkpoint(path, cfg.policy.label, trust_remote_code=cfg.policy.trust_remote_code)
     if not loaded.needs_prompts:
         raise ValueError(
             f"The prompt-swap probe needs a checkpoint that reads visual prompts (act_modified with "

@@ -29,6 +29,7 @@ class LoadedPolicy:
     cameras: dict[str, tuple[int, int]] = field(default_factory=dict)  # name -> (height, width)
     vectors: dict[str, tuple[int, ...]] = field(default_factory=dict)  # state and action shapes
     needs_prompts: bool = False
+    trust_remote_code: bool = False  # the user allowed processor steps outside LeRobot's registry
     policy: Any = None
     preprocessor: Any = None
     postprocessor: Any = None
@@ -69,15 +70,79 @@ def checkpoint_file(path: str, name: str) -> Path | None:
         ) from None
 
 
+PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+
+
+def read_json_file(file: Path, what: str) -> Any:
+    """A checkpoint's JSON file; one that does not parse is named in the error."""
+    try:
+        return json.loads(file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{what} {file} is not valid JSON ({err}); the checkpoint is damaged") from None
+
+
+def processor_steps(path: str) -> list[tuple[Path, dict]]:
+    """Every step of the checkpoint's processor pipelines, with the file that lists it."""
+    steps = []
+    for name in PROCESSOR_FILES:
+        file = checkpoint_file(path, name)
+        if file is None:
+            continue
+        pipeline = read_json_file(file, "Processor file")
+        listed = pipeline.get("steps") if isinstance(pipeline, dict) else None
+        if not isinstance(listed, list) or not all(isinstance(step, dict) for step in listed):
+            raise ValueError(f"Processor file {file} has no list of steps; the checkpoint is damaged")
+        steps += [(file, step) for step in listed]
+    return steps
+
+
+def check_processor_steps(path: str, trust_remote_code: bool) -> None:
+    """Refuses a checkpoint whose pipelines name code outside LeRobot's processor registry.
+
+    LeRobot's loader imports whatever dotted path a step's "class" names and calls it with the file's
+    arguments: a shared checkpoint could run any code. Registered steps (LeRobot's, ours, installed
+    plugins') are code the user installed, so only those load unless the user opts in.
+    """
+    if trust_remote_code:
+        return
+    from lerobot.processor.pipeline import ProcessorStepRegistry
+
+    register_plugins()
+    registered = {name: f"{c.__module__}.{c.__name__}" for name, c in ProcessorStepRegistry._registry.items()}
+    for file, step in processor_steps(path):
+        if "registry_name" in step:
+            if step["registry_name"] in registered:
+                continue
+            named = f"registry name {step['registry_name']!r}"
+        elif step.get("class") in registered.values():
+            continue
+        else:
+            named = f"class {step.get('class')!r}"
+        raise PermissionError(
+            f"Processor file {file} lists a step by {named}, which is not a registered LeRobot processor step: "
+            "loading it would import and run code the checkpoint names. Install the plugin that registers it, "
+            "or pass --policy.trust_remote_code=true if you trust this checkpoint's author"
+        )
+
+
 def checkpoint_hash(path: str) -> str:
-    """sha256 (16 hex digits) of config.json and model.safetensors: what identifies the weights."""
+    """sha256 (16 hex digits) of every file that decides behaviour: config, weights, processor pipelines and
+    their state files. A changed normalization or processor step is a different checkpoint."""
+    names = ["config.json", "model.safetensors"]
+    for name in PROCESSOR_FILES:
+        if checkpoint_file(path, name) is not None:
+            names.append(name)
+    names += sorted(
+        {step["state_file"] for _, step in processor_steps(path) if isinstance(step.get("state_file"), str)}
+    )
     digest = hashlib.sha256()
-    for name in ("config.json", "model.safetensors"):
+    for name in names:
         file = checkpoint_file(path, name)
         if file is None:
             raise FileNotFoundError(
                 f"Checkpoint {path!r} has no {name}; expected a LeRobot pretrained_model directory or hub id"
             )
+        digest.update(name.encode() + b"\0")
         with open(file, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 digest.update(block)
@@ -93,8 +158,11 @@ def register_plugins() -> None:
     register_third_party_plugins()
 
 
-def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> LoadedPolicy:
-    """What a checkpoint is, without building it: type, variant, cameras, hash, training seed."""
+def describe_checkpoint(
+    path: str, label: str | None = None, index: int = 0, trust_remote_code: bool = False
+) -> LoadedPolicy:
+    """What a checkpoint is, without building it: type, variant, cameras, hash, training seed. Checks that
+    building it would run only installed code (see check_processor_steps)."""
     register_plugins()
     if path == EXPERT:
         return LoadedPolicy(
@@ -111,7 +179,10 @@ def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> 
             f"Policy path {path!r} is neither a checkpoint directory with config.json nor a cached hub id "
             f"(or `{EXPERT}` for the scripted expert)"
         )
-    config = json.loads(config_file.read_text())
+    config = read_json_file(config_file, "Policy config")
+    if not isinstance(config, dict):
+        raise ValueError(f"Policy config {config_file} is not a JSON object; the checkpoint is damaged")
+    check_processor_steps(path, trust_remote_code)
     policy_type = config.get("type", "")
     variant = config.get("variant", "") if policy_type == "act_modified" else ""
     cameras = {
@@ -126,7 +197,8 @@ def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> 
         if key in ("observation.state", "action")
     }
     train_config = checkpoint_file(path, "train_config.json")
-    seed = json.loads(train_config.read_text()).get("seed") if train_config else None
+    training = read_json_file(train_config, "Training config") if train_config else {}
+    seed = training.get("seed") if isinstance(training, dict) else None
     return LoadedPolicy(
         path=path,
         label=label or (f"{policy_type}/{variant}" if variant else policy_type),
@@ -137,6 +209,7 @@ def describe_checkpoint(path: str, label: str | None = None, index: int = 0) -> 
         cameras=cameras,
         vectors=vectors,
         needs_prompts=bool(config.get("use_prompts")),
+        trust_remote_code=trust_remote_code,
     )
 
 
@@ -189,10 +262,15 @@ def resolve_device(device: str | None) -> str:
 
 
 def load_policy(
-    path: str, env_cfg, device: str = "cpu", label: str | None = None, index: int = 0
+    path: str,
+    env_cfg,
+    device: str = "cpu",
+    label: str | None = None,
+    index: int = 0,
+    trust_remote_code: bool = False,
 ) -> LoadedPolicy:
     """Builds the policy and its processors with LeRobot's own factories, as `lerobot-eval` does."""
-    loaded = describe_checkpoint(path, label, index)
+    loaded = describe_checkpoint(path, label, index, trust_remote_code)
     if loaded.is_expert:
         return loaded
     check_env_fits(loaded, env_cfg)

@@ -198,7 +198,8 @@ def plan_units(cfg: SweepConfig, conditions: list[str], n_checkpoints: int) -> l
 def run_sweep(cfg: SweepConfig) -> Path:
     conditions = validate(cfg)
     checkpoints = [
-        describe_checkpoint(p, cfg.policy.label, i) for i, p in enumerate(cfg.policy.checkpoints())
+        describe_checkpoint(p, cfg.policy.label, i, cfg.policy.trust_remote_code)
+        for i, p in enumerate(cfg.policy.checkpoints())
     ]
     for loaded in checkpoints:
         check_env_fits(loaded, EnvSpec.for_checkpoint(cfg.env, loaded, "clean").lerobot_config())

@@ -81,6 +81,7 @@ def make_jobs(
                 "path": loaded.path,
                 "label": loaded.label,
                 "index": unit.checkpoint,
+                "trust_remote_code": loaded.trust_remote_code,
                 "device": device,
                 "env": EnvSpec.for_checkpoint(env, loaded, unit.condition),
                 "episodes": episodes,
@@ -120,7 +121,12 @@ def run_unit(job: dict) -> list[dict]:
     key = (job["path"], job["device"], spec.observation_height, spec.observation_width)
     if key not in _POLICIES:
         _POLICIES[key] = load_policy(
-            job["path"], spec.lerobot_config(), job["device"], job["label"], job["index"]
+            job["path"],
+            spec.lerobot_config(),
+            job["device"],
+            job["label"],
+            job["index"],
+            job["trust_remote_code"],
         )
     loaded = _POLICIES[key]
     envs = _POOL.get(spec, len(job["seeds"]))

@@ -472,3 +472,53 @@ def test_sweeps_of_other_layouts_combine_but_do_not_pair(tmp_path):
     text = html_path.read_text()
     assert 'id="table-1"' in text and 'id="condition-differences"' not in text
     assert text.count("Not paired: ") == 2 and "episodes have no partner" in text
+
+
+def test_a_report_replaces_only_what_it_wrote(inputs, tmp_path):
+    cfg = ReportConfig(input_dir=[str(inputs[2]), str(inputs[4])], output=str(tmp_path / "r.html"))
+    html_path, md_path = build_report(cfg)
+    files = md_path.parent / "r_files"
+    ours = sorted(p.name for p in files.glob("*.png"))
+    assert ours, "figures beside the Markdown"
+    (files / "holiday.png").write_bytes(png_bytes())  # the user's own file in the report's folder
+    build_report(ReportConfig(input_dir=[str(inputs[4])], output=cfg.output))  # fewer figures
+    left = sorted(p.name for p in files.glob("*.png"))
+    assert "holiday.png" in left and set(ours) - set(left), "the report's stale figures go, the user's stays"
+
+    # Output names that would clobber something: the Markdown itself, a file another tool wrote.
+    for output, fragment in (
+        (tmp_path / "r.md", "is not allowed; allowed: a file name ending in .html"),
+        (tmp_path / "notes.html", "which condground report did not write"),
+    ):
+        if output.suffix == ".html":
+            output.write_text("<p>my notes</p>")
+        before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+        with pytest.raises((ValueError, FileExistsError), match=re.escape(fragment)):
+            build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(output)))
+        assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_input_json_cannot_reach_outside_its_folder_or_inject_html(inputs, tmp_path):
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(png_bytes())
+    for rel in ("../secret.png", str(secret), "figures/../../secret.png"):
+        diag = tmp_path / f"diag{len(rel)}"
+        shutil.copytree(inputs[2], diag)
+        data = json.loads((diag / "diagnostics.json").read_text())
+        data["figures"] = {"shift": rel}
+        (diag / "diagnostics.json").write_text(json.dumps(data))
+        with pytest.raises(
+            ValueError, match=f"figure {re.escape(repr(rel))} listed in its JSON is outside {diag}"
+        ):
+            build_report(ReportConfig(input_dir=[str(diag)], output=str(tmp_path / "x.html")))
+
+    diag = tmp_path / "diag_html"
+    shutil.copytree(inputs[2], diag)
+    data = json.loads((diag / "diagnostics.json").read_text())
+    data["notes"] = ['<img src=x onerror="alert(1)"> | <script>alert(2)</script>']
+    (diag / "diagnostics.json").write_text(json.dumps(data))
+    html_path, md_path = build_report(ReportConfig(input_dir=[str(diag)], output=str(tmp_path / "h.html")))
+    for path in (html_path, md_path):
+        text = path.read_text()
+        assert "<script>alert" not in text and "<img src=x" not in text, path
+        assert "&lt;script&gt;alert(2)&lt;/script&gt;" in text, path

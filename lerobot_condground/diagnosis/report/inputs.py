@@ -90,7 +90,10 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
 
 def _check_files(folder: Path, rels, what: str) -> None:
     for rel in rels:
-        path = folder / rel
+        path = folder / str(rel)
+        # The JSON is input like any other: a path out of its folder would put any PNG on disk in the report.
+        if not path.resolve().is_relative_to(folder.resolve()):
+            raise ValueError(f"{folder}: {what} {rel!r} listed in its JSON is outside {folder}")
         if not path.is_file():
             raise ValueError(f"{folder}: {what} {rel!r} listed in its JSON does not exist")
         with path.open("rb") as fh:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import html
+import json
 import re
 from pathlib import Path
 
@@ -27,9 +28,19 @@ def _code_spans(text: str) -> Markup:
     return Markup(re.sub(r"`([^`]+)`", r"<code>\1</code>", _escape_html(text)))
 
 
-def _md_cell(text) -> str:
-    """A Markdown table cell: a pipe would end the cell, and a line break the row."""
-    return "<br>".join(str(text).replace("|", "\\|").splitlines())
+def _escape_markdown(value) -> Markup:
+    """HTML in Markdown is live: text from the inputs (labels, paths, notes) is escaped as in the HTML."""
+    if hasattr(value, "__html__"):
+        return Markup(value.__html__())
+    return Markup(html.escape(str(value), quote=False))
+
+
+def _md_row(cells) -> Markup:
+    """A Markdown table row's cells: a pipe would end the cell, and a line break the row."""
+    return Markup(" | ").join(
+        Markup("<br>").join(_escape_markdown(line.replace("|", "\\|")) for line in str(cell).splitlines())
+        for cell in cells
+    )
 
 
 def _md_columns(table: Table) -> list[str]:
@@ -59,7 +70,7 @@ def _environment(autoescape: bool) -> Environment:
 _HTML = _environment(autoescape=True)
 _HTML.filters.update(code_spans=_code_spans, base64=lambda png: base64.b64encode(png).decode("ascii"))
 _MARKDOWN = _environment(autoescape=False)
-_MARKDOWN.filters.update(md_cell=_md_cell, md_columns=_md_columns)
+_MARKDOWN.filters.update(md=_escape_markdown, md_row=_md_row, md_columns=_md_columns)
 
 
 def render_html(doc: Document) -> str:
@@ -72,18 +83,45 @@ def render_markdown(doc: Document, files_dir: str) -> tuple[str, dict[str, bytes
     return text, {f"{figure.name}.png": figure.png for figure in doc.figures}
 
 
+MANIFEST = (
+    "condground-report.json"  # in NAME_files/: what the last run wrote, the only files a rerun replaces
+)
+
+
 def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
-    """Writes the HTML to `html_path` and the Markdown beside it (same name, .md, figures in NAME_files/)."""
+    """Writes the HTML to `html_path` and the Markdown beside it (same name, .md, figures in NAME_files/).
+    Overwrites and removes only files an earlier report wrote there; anything else is an error."""
+    if html_path.suffix.lower() not in (".html", ".htm"):
+        raise ValueError(
+            f"--output={html_path} is not allowed; allowed: a file name ending in .html "
+            f"(the Markdown goes beside it as {html_path.stem}.md)"
+        )
     md_path = html_path.with_suffix(".md")
     files_dir = html_path.parent / f"{html_path.stem}_files"
-    html_path.parent.mkdir(parents=True, exist_ok=True)
-    html_path.write_text(render_html(doc), encoding="utf-8")
+    manifest_path = files_dir / MANIFEST
+    ours: set[str] = set()
+    if manifest_path.is_file():
+        try:
+            written = json.loads(manifest_path.read_text())
+            ours = {html_path.name, md_path.name} | {files_dir.name + "/" + n for n in written["figures"]}
+        except (json.JSONDecodeError, KeyError, TypeError) as err:
+            raise ValueError(f"{manifest_path} is damaged ({err}); choose another --output") from None
     text, files = render_markdown(doc, files_dir.name)
-    files_dir.mkdir(exist_ok=True)
-    for stale in files_dir.glob("*.png"):  # a rerun with fewer figures must not leave old ones behind
-        if stale.name not in files:
+    targets = [html_path, md_path, *(files_dir / name for name in files)]
+    foreign = [p for p in targets if p.exists() and str(p.relative_to(html_path.parent)) not in ours]
+    if foreign:
+        raise FileExistsError(
+            f"--output={html_path} would overwrite {foreign[0]}, which condground report did not write; "
+            "choose another --output or move that file away"
+        )
+    files_dir.mkdir(parents=True, exist_ok=True)
+    html_path.write_text(render_html(doc), encoding="utf-8")
+    for name in sorted(ours):  # a rerun with fewer figures must not leave old ones behind
+        stale = html_path.parent / name
+        if name.startswith(files_dir.name + "/") and stale.name not in files and stale.is_file():
             stale.unlink()
     for name, png in files.items():
         (files_dir / name).write_bytes(png)
+    manifest_path.write_text(json.dumps({"figures": sorted(files)}, indent=1))
     md_path.write_text(text, encoding="utf-8")
     return html_path, md_path

@@ -1,0 +1,116 @@
+"""Checkpoints are untrusted input: loading one runs only installed code, and its identity covers every
+file that decides behaviour."""
+
+import json
+import shutil
+import time
+
+import pytest
+
+from helpers import run_cli
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+from lerobot_condground.diagnosis.attention import AttentionConfig, run_attention
+from lerobot_condground.diagnosis.diagnose import DiagnoseConfig, run_diagnose
+from lerobot_condground.diagnosis.probe import ProbeConfig, run_probe
+from lerobot_condground.evaluation.checkpoints import checkpoint_hash, describe_checkpoint, load_policy
+from lerobot_condground.evaluation.rollout import EnvSpec
+
+PREPROCESSOR = "policy_preprocessor.json"
+
+
+def with_step(src, dst, step: dict):
+    """A copy of checkpoint src whose preprocessor runs `step` first."""
+    shutil.copytree(src, dst)
+    pipeline = json.loads((dst / PREPROCESSOR).read_text())
+    pipeline["steps"].insert(0, step)
+    (dst / PREPROCESSOR).write_text(json.dumps(pipeline))
+    return dst
+
+
+def test_a_checkpoint_naming_arbitrary_code_is_refused_before_anything_runs(tmp_path, act_checkpoint):
+    marker = tmp_path / "pwned"
+    evil = with_step(
+        act_checkpoint,
+        tmp_path / "evil",
+        {"class": "subprocess.Popen", "config": {"args": ["touch", str(marker)]}},
+    )
+    proc = run_cli(
+        "condground",
+        "sweep",
+        f"--policy.path={evil}",
+        "--sweep.conditions=clean",
+        "--eval.n_episodes=1",
+        f"--output_dir={tmp_path / 'sweep'}",
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    # LeRobot's own plugin loader may print a line first; the error is one line, the last.
+    assert (
+        proc.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            f"condground sweep: Processor file {evil / PREPROCESSOR} lists a step by class 'subprocess.Popen'"
+        )
+    )
+    assert "--policy.trust_remote_code=true" in proc.stderr and "Traceback" not in proc.stderr
+    assert not marker.exists() and not (tmp_path / "sweep").exists()
+
+    # The same refusal for every command that loads a checkpoint, and for an unknown registry name.
+    for run, config in (
+        (run_probe, ProbeConfig),
+        (run_diagnose, DiagnoseConfig),
+        (run_attention, AttentionConfig),
+    ):
+        cfg = config(policy=PolicyRefConfig(path=str(evil)), output_dir=str(tmp_path / run.__name__))
+        with pytest.raises(PermissionError, match="class 'subprocess.Popen'"):
+            run(cfg)
+    unknown = with_step(
+        act_checkpoint, tmp_path / "unknown", {"registry_name": "steal_credentials", "config": {}}
+    )
+    with pytest.raises(PermissionError, match="registry name 'steal_credentials'"):
+        describe_checkpoint(str(unknown))
+    assert not marker.exists()
+
+    # What the check prevents: opted in, LeRobot imports and calls the class (and rejects it, too late).
+    loaded = describe_checkpoint(str(evil), trust_remote_code=True)
+    spec = EnvSpec.for_checkpoint(EvalEnvConfig(task="PickPlaceFixedBin-v0"), loaded, "clean")
+    with pytest.raises(TypeError, match="must inherit from ProcessorStep"):
+        load_policy(str(evil), spec.lerobot_config(), trust_remote_code=True)
+    deadline = time.time() + 30
+    while not marker.exists() and time.time() < deadline:
+        time.sleep(0.1)
+    assert marker.exists()
+    assert describe_checkpoint(str(act_checkpoint)).policy_type == "act"  # registered steps only: allowed
+
+
+def test_the_checkpoint_hash_covers_processors_and_their_state(tmp_path, act_checkpoint):
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(act_checkpoint, ckpt)
+    before = checkpoint_hash(str(ckpt))
+    state_files = [
+        step["state_file"]
+        for step in json.loads((ckpt / PREPROCESSOR).read_text())["steps"]
+        if "state_file" in step
+    ]
+    assert state_files, "the stock checkpoint's normalizer keeps its statistics in a state file"
+    state = ckpt / state_files[0]
+    data = bytearray(state.read_bytes())
+    data[-1] ^= 1  # one bit of the normalization statistics
+    state.write_bytes(bytes(data))
+    assert checkpoint_hash(str(ckpt)) != before
+    state.write_bytes(bytes(data[:-1]) + bytes([data[-1] ^ 1]))
+    assert checkpoint_hash(str(ckpt)) == before
+    pipeline = json.loads((ckpt / PREPROCESSOR).read_text())
+    pipeline["steps"] = pipeline["steps"][::-1]
+    (ckpt / PREPROCESSOR).write_text(json.dumps(pipeline))
+    assert checkpoint_hash(str(ckpt)) != before
+
+
+def test_a_damaged_checkpoint_file_is_named(tmp_path, act_checkpoint):
+    for name in ("config.json", PREPROCESSOR, "train_config.json"):
+        ckpt = tmp_path / name
+        shutil.copytree(act_checkpoint, ckpt)
+        text = (ckpt / name).read_text()
+        (ckpt / name).write_text(text[: len(text) // 2])
+        with pytest.raises(ValueError, match=f"{ckpt / name} is not valid JSON"):
+            describe_checkpoint(str(ckpt))
