@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.core.configs import DatasetOutputConfig
+from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.labels import (
     OBS_PHASE,
     OBS_PROMPT_OBJECT,
@@ -143,8 +144,10 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
 
     provenance_path = root / RECORD_FILE
     if (root / "meta" / "info.json").exists():
-        info = json.loads((root / "meta" / "info.json").read_text())
-        previous = json.loads(provenance_path.read_text()) if provenance_path.exists() else {}
+        info = read_json_object(root / "meta" / "info.json", "Dataset info")
+        previous = (
+            read_json_object(provenance_path, "Recording provenance") if provenance_path.exists() else {}
+        )
         mismatches = []
         if info.get("fps") != cfg.env.fps:
             mismatches.append(f"fps {info.get('fps')} != {cfg.env.fps}")

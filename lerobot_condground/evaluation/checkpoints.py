@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from lerobot_condground.core.files import read_json_object
 
 EXPERT = "expert"
 CAMERA_PREFIX = "observation.images."
@@ -73,14 +74,6 @@ def checkpoint_file(path: str, name: str) -> Path | None:
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 
 
-def read_json_file(file: Path, what: str) -> Any:
-    """A checkpoint's JSON file; one that does not parse is named in the error."""
-    try:
-        return json.loads(file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{what} {file} is not valid JSON ({err}); the checkpoint is damaged") from None
-
-
 def processor_steps(path: str) -> list[tuple[Path, dict]]:
     """Every step of the checkpoint's processor pipelines, with the file that lists it."""
     steps = []
@@ -88,8 +81,7 @@ def processor_steps(path: str) -> list[tuple[Path, dict]]:
         file = checkpoint_file(path, name)
         if file is None:
             continue
-        pipeline = read_json_file(file, "Processor file")
-        listed = pipeline.get("steps") if isinstance(pipeline, dict) else None
+        listed = read_json_object(file, "Processor file").get("steps")
         if not isinstance(listed, list) or not all(isinstance(step, dict) for step in listed):
             raise ValueError(f"Processor file {file} has no list of steps; the checkpoint is damaged")
         steps += [(file, step) for step in listed]
@@ -179,9 +171,7 @@ def describe_checkpoint(
             f"Policy path {path!r} is neither a checkpoint directory with config.json nor a cached hub id "
             f"(or `{EXPERT}` for the scripted expert)"
         )
-    config = read_json_file(config_file, "Policy config")
-    if not isinstance(config, dict):
-        raise ValueError(f"Policy config {config_file} is not a JSON object; the checkpoint is damaged")
+    config = read_json_object(config_file, "Policy config")
     check_processor_steps(path, trust_remote_code)
     policy_type = config.get("type", "")
     variant = config.get("variant", "") if policy_type == "act_modified" else ""
@@ -197,8 +187,7 @@ def describe_checkpoint(
         if key in ("observation.state", "action")
     }
     train_config = checkpoint_file(path, "train_config.json")
-    training = read_json_file(train_config, "Training config") if train_config else {}
-    seed = training.get("seed") if isinstance(training, dict) else None
+    seed = read_json_object(train_config, "Training config").get("seed") if train_config else None
     return LoadedPolicy(
         path=path,
         label=label or (f"{policy_type}/{variant}" if variant else policy_type),

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from lerobot_condground.core.conditions import PAPER_GRID, ConditionSpec, check_task
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.evaluation.checkpoints import (
     LoadedPolicy,
@@ -159,7 +160,7 @@ def check_same_sweep(root: Path, manifest: dict) -> None:
                 f"{root} holds results but no {MANIFEST}: it is not a condground sweep directory"
             )
         return
-    previous = json.loads(path.read_text())
+    previous = read_json_object(path, "Sweep manifest")
     diffs = [
         f"{k}: {previous['grid'].get(k)!r} -> {v!r}"
         for k, v in manifest["grid"].items()
@@ -265,7 +266,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     import pandas as pd
 
     results = pd.concat([frames[p] for p in expected], ignore_index=True)[list(COLUMNS)]
-    write_table(results, root / RESULTS, metadata=json.loads((root / MANIFEST).read_text()))
+    write_table(results, root / RESULTS, metadata=read_json_object(root / MANIFEST, "Sweep manifest"))
     ran = successes[1]
     print(
         f"sweep: wrote {len(results)} episodes to {root / RESULTS}"

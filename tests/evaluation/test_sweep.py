@@ -21,7 +21,13 @@ from lerobot_condground.evaluation.results import (
     read_table,
     write_table,
 )
-from lerobot_condground.evaluation.sweep import SweepConfig, SweepEvalConfig, SweepGridConfig, run_sweep
+from lerobot_condground.evaluation.sweep import (
+    MANIFEST,
+    SweepConfig,
+    SweepEvalConfig,
+    SweepGridConfig,
+    run_sweep,
+)
 from lerobot_condground.evaluation.units import PARTS
 
 OUTCOMES = list(OUTCOME_COLUMNS)
@@ -149,6 +155,11 @@ def test_bad_input_is_one_clear_error(tmp_path, tiny_checkpoints):
     run_sweep(sweep_config([ckpt], out, conditions="clean", length=3, workers=1))
     with pytest.raises(ValueError, match="another grid; differences: n_episodes: 2 -> 4"):
         run_sweep(sweep_config([ckpt], out, conditions="clean", episodes=4, length=3, workers=1))
+    manifest = (out / MANIFEST).read_text()
+    (out / MANIFEST).write_text(manifest[: len(manifest) // 2])  # a hand edit gone wrong
+    with pytest.raises(ValueError, match=f"Sweep manifest {out / MANIFEST} is not valid JSON"):
+        run_sweep(sweep_config([ckpt], out, conditions="clean", length=3, workers=1))
+    (out / MANIFEST).write_text(manifest)
     part = next((out / PARTS).rglob("*.parquet"))
     part.write_bytes(part.read_bytes()[:100])
     with pytest.raises(ValueError, match=f"Results file {part} is corrupted"):

@@ -6,13 +6,13 @@ directory, raised before anything is written.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from lerobot_condground.core.files import read_json_object
 from lerobot_condground.evaluation.results import read_metadata, read_table
 
 KIND_FILES = {
@@ -34,16 +34,6 @@ class Inputs:
     diagnostics: list[tuple[Path, dict]]
     probes: list[tuple[Path, dict]]
     attention: list[tuple[Path, dict]]
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path.parent}: {path.name} is not readable JSON ({err})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path.parent}: {path.name} holds {type(data).__name__}, not a JSON object")
-    return data
 
 
 def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
@@ -124,7 +114,7 @@ def load_inputs(dirs: list[str]) -> Inputs:
                 "sweep, diagnose, probe or attention"
             )
         for name, kind in found:
-            data = _read_json(folder / name)
+            data = read_json_object(folder / name, "Input")
             if data.get("kind") != kind:
                 raise ValueError(f"{folder}: {name} says kind {data.get('kind')!r}, expected {kind!r}")
             sources.append((folder, data))

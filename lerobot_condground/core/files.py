@@ -1,0 +1,20 @@
+"""Reading JSON files that this package or LeRobot wrote and a user may hand us damaged or hand-edited:
+an error names the file, never only the parser's line and column."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def read_json_object(path: Path, what: str) -> dict:
+    """The JSON object in `path`; `what` says in the error which file it was meant to be."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(
+            f"{what} {path} is not valid JSON ({err}); it is damaged or was not written by LeRobot or condground"
+        ) from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{what} {path} holds a JSON {type(data).__name__}, not an object")
+    return data
