@@ -11,6 +11,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+SEED_LIMIT = 2**63  # seeds are stored in int64 columns (results, provenance); numpy refuses negative ones
+
+
+def check_seed(flag: str, first: int, count: int = 1) -> None:
+    """`count` seeds from `first` on must all be valid; one error naming the flag otherwise."""
+    if not 0 <= first <= SEED_LIMIT - count:
+        raise ValueError(f"{flag}={first} is not allowed; allowed: a seed from 0 to {SEED_LIMIT - count}")
+
 
 @dataclass
 class PolicyRefConfig:

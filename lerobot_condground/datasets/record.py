@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_condground.core.configs import DatasetOutputConfig
+from lerobot_condground.core.configs import DatasetOutputConfig, check_seed
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.labels import (
     OBS_PHASE,
@@ -74,6 +74,7 @@ class RecordConfig:
     progress: bool = True
 
     def __post_init__(self):
+        check_seed("--seed", self.seed, self.dataset.num_episodes)
         if self.dataset.num_episodes < 1:
             raise ValueError(f"dataset.num_episodes={self.dataset.num_episodes} must be at least 1")
         if self.dataset.checkpoint_every < 1:

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.core import paper
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.diagnosis.hooks import ACTProbe, check_condition, load_act_family
 
@@ -425,6 +425,9 @@ def run_diagnose(cfg: DiagnoseConfig) -> Path:
     opts = cfg.diagnose
     if opts.pairs < 1:
         raise ValueError(f"--diagnose.pairs={opts.pairs} must be at least 1")
+    check_seed("--diagnose.seed", opts.seed, opts.pairs)
+    if not 0 <= opts.tsne_seed < 2**32:  # scikit-learn's random_state range
+        raise ValueError(f"--diagnose.tsne_seed={opts.tsne_seed} is not allowed; allowed: 0 to {2**32 - 1}")
     if opts.frame_stride < 1:
         raise ValueError(f"--diagnose.frame_stride={opts.frame_stride} must be at least 1")
     if opts.batch_size < 1:

@@ -16,13 +16,13 @@ from pathlib import Path
 
 from lerobot_condground.core import paper
 from lerobot_condground.core.conditions import MATCHES, check_task
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.evaluation.checkpoints import check_env_fits, describe_checkpoint, resolve_device
 from lerobot_condground.evaluation.launchers import execute
 from lerobot_condground.evaluation.results import write_table
 from lerobot_condground.evaluation.rollout import EnvSpec
-from lerobot_condground.evaluation.units import Unit, make_jobs
+from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT, Unit, make_jobs
 
 ROLES = ("object", "receptacle")
 SELECTED = {"object": "selected_competitor_object", "receptacle": "placed_in_competitor_receptacle"}
@@ -57,6 +57,7 @@ def run_probe(cfg: ProbeConfig) -> Path:
         raise ValueError(f"Unknown --probe.match={cfg.probe.match!r}; allowed: {', '.join(MATCHES)}")
     if cfg.probe.episodes < 1:
         raise ValueError(f"--probe.episodes={cfg.probe.episodes} must be at least 1")
+    check_seed("--probe.seed_offset", cfg.probe.seed_offset, EPISODES_PER_SEED_LIMIT)
     if cfg.env.condition is not None:
         raise ValueError(
             f"--env.condition={cfg.env.condition!r} is not a probe flag; allowed: the probed competitor "

@@ -117,6 +117,20 @@ def check_processor_steps(path: str, trust_remote_code: bool) -> None:
         )
 
 
+def check_weights(path: str) -> None:
+    """The weights file is whole: a truncated download or copy fails here, not inside a worker."""
+    from safetensors import SafetensorError, safe_open
+
+    file = checkpoint_file(path, "model.safetensors")
+    if file is None:
+        raise FileNotFoundError(f"Checkpoint {path!r} has no model.safetensors")
+    try:
+        with safe_open(file, "pt") as weights:
+            weights.keys()
+    except SafetensorError as err:
+        raise ValueError(f"Weights file {file} is damaged or incomplete ({err})") from None
+
+
 def checkpoint_hash(path: str) -> str:
     """sha256 (16 hex digits) of every file that decides behaviour: config, weights, processor pipelines and
     their state files. A changed normalization or processor step is a different checkpoint."""
@@ -172,8 +186,17 @@ def describe_checkpoint(
             f"(or `{EXPERT}` for the scripted expert)"
         )
     config = read_json_object(config_file, "Policy config")
-    check_processor_steps(path, trust_remote_code)
     policy_type = config.get("type", "")
+    from lerobot.configs.policies import PreTrainedConfig
+
+    known = sorted(PreTrainedConfig.get_known_choices())
+    if policy_type not in known:
+        raise ValueError(
+            f"Policy config {config_file} names policy type {policy_type!r}, which no installed package "
+            f"registers; known: {', '.join(known)}"
+        )
+    check_processor_steps(path, trust_remote_code)
+    check_weights(path)
     variant = config.get("variant", "") if policy_type == "act_modified" else ""
     cameras = {
         key[len(CAMERA_PREFIX) :]: tuple(feature["shape"][-2:])

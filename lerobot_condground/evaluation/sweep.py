@@ -26,7 +26,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from lerobot_condground.core.conditions import PAPER_GRID, ConditionSpec, check_task
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.evaluation.checkpoints import (
@@ -117,6 +117,7 @@ def validate(cfg: SweepConfig) -> list[str]:
         )
     if cfg.workers is not None and cfg.workers < 1:
         raise ValueError(f"--workers={cfg.workers} must be at least 1")
+    check_seed("--eval.seed_offset", cfg.eval.seed_offset, cfg.eval.seeds * EPISODES_PER_SEED_LIMIT)
     if not cfg.policy.checkpoints():
         raise ValueError("--policy.paths is empty; give checkpoints separated by commas (or `expert`)")
     if cfg.env.condition is not None:

@@ -114,3 +114,39 @@ def test_a_damaged_checkpoint_file_is_named(tmp_path, act_checkpoint):
         (ckpt / name).write_text(text[: len(text) // 2])
         with pytest.raises(ValueError, match=f"{ckpt / name} is not valid JSON"):
             describe_checkpoint(str(ckpt))
+
+
+def test_what_would_fail_inside_a_worker_fails_before_the_sweep_starts(tmp_path, act_checkpoint):
+    weights = tmp_path / "weights"
+    shutil.copytree(act_checkpoint, weights)
+    data = (weights / "model.safetensors").read_bytes()
+    (weights / "model.safetensors").write_bytes(data[: len(data) - 1000])  # an interrupted copy
+    unknown = tmp_path / "unknown"
+    shutil.copytree(act_checkpoint, unknown)
+    config = json.loads((unknown / "config.json").read_text())
+    (unknown / "config.json").write_text(json.dumps({**config, "type": "act_plus_plus"}))
+    for ckpt, extra, fragment in (
+        (weights, [], f"Weights file {weights / 'model.safetensors'} is damaged or incomplete"),
+        (
+            unknown,
+            [],
+            "names policy type 'act_plus_plus', which no installed package registers; known: act, ",
+        ),
+        (
+            act_checkpoint,
+            ["--eval.seed_offset=-1"],
+            "--eval.seed_offset=-1 is not allowed; allowed: a seed from 0",
+        ),
+    ):
+        out = tmp_path / f"sweep_{ckpt.name}"
+        proc = run_cli(
+            "condground",
+            "sweep",
+            f"--policy.path={ckpt}",
+            "--sweep.conditions=clean",
+            f"--output_dir={out}",
+            *extra,
+            check=False,
+        )
+        assert proc.returncode == 2 and fragment in proc.stderr.strip().splitlines()[-1], proc.stderr[-2000:]
+        assert not out.exists()
