@@ -10,6 +10,7 @@ source and, with video, encoded again: pixels outside the pastes match the sourc
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from dataclasses import asdict, dataclass, field
 
@@ -113,11 +114,17 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
     features = _output_features(source, video)
     cameras = list(source.meta.camera_keys)
     camera = cfg.copy_paste.camera_key
+    # Written beside the output and renamed into place when whole: a failed or killed run leaves no
+    # dataset at --output.root that would block the rerun, and the rerun clears the partial copy.
+    partial = out_root.with_name(f".{out_root.name}.partial")
+    if partial.exists():
+        logging.info("Removing %s, the partial copy of an earlier run that did not finish", partial)
+        shutil.rmtree(partial)
     target = LeRobotDataset.create(
         cfg.output.repo_id,
         fps=source.meta.fps,
         features=features,
-        root=out_root,
+        root=partial,
         robot_type=source.meta.robot_type,
         use_videos=video,
         streaming_encoding=False,
@@ -130,6 +137,7 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
         unit="frame",
         disable=not cfg.progress,
     )
+    finished = False
     try:
         for ep in range(source.meta.total_episodes):
             start, stop = int(episodes[ep]["dataset_from_index"]), int(episodes[ep]["dataset_to_index"])
@@ -149,12 +157,15 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
                 frames += len(items)
                 bar.update(len(items))
             target.save_episode()
+        finished = True
     finally:
         bar.close()
         target.finalize()
+        if not finished:
+            shutil.rmtree(partial, ignore_errors=True)
     if (src_root / RECORD_FILE).is_file():
-        shutil.copyfile(src_root / RECORD_FILE, out_root / RECORD_FILE)
-    (out_root / AUGMENT_FILE).write_text(
+        shutil.copyfile(src_root / RECORD_FILE, partial / RECORD_FILE)
+    (partial / AUGMENT_FILE).write_text(
         json.dumps(
             {
                 "source": {"repo_id": cfg.dataset.repo_id, "root": str(src_root)},
@@ -163,6 +174,7 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
             indent=1,
         )
     )
+    partial.rename(out_root)
     if cfg.output.push_to_hub:
         LeRobotDataset(cfg.output.repo_id, root=out_root).push_to_hub(private=cfg.output.private)
     return {

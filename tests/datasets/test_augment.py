@@ -86,3 +86,34 @@ def test_refuses_bad_input(recorded_dataset, tmp_path, capsys):
     assert _augment("--dataset.repo_id=local/plain", f"--dataset.root={plain}", *out) == 2
     assert OBS_SEGMENTATION in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_killed_augment_leaves_nothing_that_blocks_the_rerun(recorded_dataset, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from helpers import BIN
+
+    out_root = tmp_path / "augmented"
+    args = [
+        str(BIN / "condground"),
+        "augment",
+        "--dataset.repo_id=local/test_full_mixed",
+        f"--dataset.root={recorded_dataset}",
+        "--output.repo_id=local/test_killed",
+        f"--output.root={out_root}",
+        "--progress=false",
+    ]
+    proc = subprocess.Popen(args, env={**os.environ, "MUJOCO_GL": "egl"}, stderr=subprocess.DEVNULL)
+    partial = tmp_path / ".augmented.partial"
+    deadline = time.time() + 120
+    while not (partial / "meta" / "info.json").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert partial.exists() and not out_root.exists(), "killed while writing, before the copy was whole"
+    out = run_cli("condground", *args[1:])
+    assert "frames with pastes:" in out.stdout
+    assert (out_root / "meta" / "condground_augment.json").is_file() and not partial.exists()
