@@ -7,6 +7,7 @@ name (`clean`, `object_color_2`, `full_mixed`, ...) or as fields (`object_color=
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 
 ROLES = ("object", "receptacle")
@@ -71,12 +72,16 @@ class ConditionSpec:
                 raise ValueError(
                     f"Unknown condition field {key!r} in {text!r}; allowed: {', '.join(FIELD_NAMES)}"
                 )
-            try:
-                values[key] = int(raw)
-            except ValueError:
+            if key in values:
+                raise ValueError(
+                    f"Condition field {key!r} is given twice in {text!r}; allowed: each field once"
+                )
+            # int() would also read '١' or '2_0': only the ASCII digits condition names are written with.
+            if not re.fullmatch(r"-?[0-9]+", raw.strip()):
                 raise ValueError(
                     f"Competitor count {key}={raw.strip()!r} is not an integer; allowed: 0..{MAX_PER_CLASS}"
-                ) from None
+                )
+            values[key] = int(raw)
         return cls(**values)
 
 

@@ -135,8 +135,9 @@ class UR3eConfig(RobotConfig):
             if len(value) != 6 or not all(math.isfinite(v) for v in value):
                 problems.append(f"{name}={value}: 6 finite numbers, one per joint")
         for name in ("workspace_min", "workspace_max"):
-            if len(getattr(self, name)) != 3:
-                problems.append(f"{name}={getattr(self, name)}: 3 numbers x, y, z in metres")
+            value = getattr(self, name)
+            if len(value) != 3 or not all(math.isfinite(v) for v in value):
+                problems.append(f"{name}={value}: 3 finite numbers x, y, z in metres")
         if not problems:
             if any(lo >= hi for lo, hi in zip(self.joint_min, self.joint_max, strict=True)):
                 problems.append(f"joint_min={self.joint_min} must be below joint_max={self.joint_max}")
@@ -158,8 +159,8 @@ class UR3eConfig(RobotConfig):
             )
         if not 100 <= self.servoj_gain <= 2000:
             problems.append(f"servoj_gain={self.servoj_gain}; allowed: 100..2000 (UR's range)")
-        if self.stall_periods < 1:
-            problems.append(f"stall_periods={self.stall_periods}; allowed: >= 1")
+        if not 1 <= self.stall_periods <= 50:  # also refuses NaN and inf: a watchdog that never fires
+            problems.append(f"stall_periods={self.stall_periods}; allowed: 1..50")
         if self.prompts.segmenter not in (None, *PROMPT_SEGMENTERS):
             problems.append(
                 f"prompts.segmenter={self.prompts.segmenter!r}; allowed: {', '.join(PROMPT_SEGMENTERS)} (or unset)"

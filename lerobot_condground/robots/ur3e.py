@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import numbers
 import time
 from functools import cached_property
 
@@ -43,6 +44,15 @@ def connected_ur3e(host: str | None = None) -> UR3e:
             "of exactly one connected --robot.type=ur3e (set --teleop.host when there are several)"
         )
     return robots[0]
+
+
+def _is_real(value) -> bool:
+    """A real scalar: Python's and numpy's, or a 0-d array or tensor (what LeRobot's converters hand over)."""
+    if isinstance(value, bool | str | bytes):
+        return False
+    return isinstance(value, numbers.Real) or (
+        getattr(value, "ndim", None) == 0 and not hasattr(value, "keys")
+    )
 
 
 class UR3e(Robot):
@@ -266,6 +276,12 @@ class UR3e(Robot):
             raise ValueError(
                 f"A ur3e action needs exactly the keys {list(MOTOR_NAMES)}; missing {missing}, unknown {extra}. "
                 "Nothing was sent to the arm."
+            )
+        # numpy would read "0.5" or a one-element list as a number: a value of another type is a bug upstream.
+        odd = {k: type(v).__name__ for k, v in action.items() if not _is_real(v)}
+        if odd:
+            raise ValueError(
+                f"A ur3e action value is one real number per key; got {odd}. Nothing was sent to the arm."
             )
         a = self.safety.check_action([action[k] for k in MOTOR_NAMES])
         state = self.arm.state()

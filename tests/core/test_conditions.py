@@ -34,6 +34,8 @@ def test_by_fields_and_back_to_name():
         ("object_color=4", "object_color=4 is out of range"),
         ("object_color=-1", "object_color=-1 is out of range"),
         ("object_color=two", "object_color='two' is not an integer"),
+        ("object_color=\u0661", "object_color='\u0661' is not an integer"),  # an Arabic-Indic one
+        ("object_color=1,object_color=2", "Condition field 'object_color' is given twice"),
     ],
 )
 def test_bad_conditions_name_the_value(text, fragment):

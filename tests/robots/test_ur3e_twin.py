@@ -220,6 +220,10 @@ def test_bad_actions_are_refused_before_anything_is_sent():
             ({**action(HOME_QPOS), "shoulder_pan.pos": float("nan")}, "7 finite numbers"),
             ({k: v for k, v in action(HOME_QPOS).items() if k != "gripper.pos"}, "missing ['gripper.pos']"),
             ({**action(HOME_QPOS), "elbow.vel": 0.0}, "unknown ['elbow.vel']"),
+            ({**action(HOME_QPOS), "wrist_1.pos": "0.5"}, "got {'wrist_1.pos': 'str'}"),
+            ({**action(HOME_QPOS), "wrist_1.pos": [0.5]}, "got {'wrist_1.pos': 'list'}"),
+            ({**action(HOME_QPOS), "gripper.pos": np.zeros(1)}, "got {'gripper.pos': 'ndarray'}"),
+            ({**action(HOME_QPOS), "gripper.pos": True}, "got {'gripper.pos': 'bool'}"),
         ):
             with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
                 robot.send_action(bad)
@@ -312,6 +316,12 @@ def test_missing_camera_is_one_clear_error_and_the_arm_is_released():
         ({"backend": "sim", "gripper": "suction"}, "gripper='suction'"),
         ({"backend": "sim", "joint_offsets": [0.0] * 5}, "joint_offsets"),
         ({"backend": "sim", "max_joint_step": 2.0}, "max_joint_step=2.0"),
+        (
+            {"backend": "sim", "workspace_max": [0.5, float("nan"), 0.5]},
+            "workspace_max=[0.5, nan, 0.5]: 3 finite",
+        ),
+        ({"backend": "sim", "stall_periods": float("inf")}, "stall_periods=inf; allowed: 1..50"),
+        ({"backend": "sim", "stall_periods": float("nan")}, "stall_periods=nan; allowed: 1..50"),
         ({"host": "192.0.2.1", "prompts": {"segmenter": "privileged"}}, "needs backend=sim"),
     ],
 )
