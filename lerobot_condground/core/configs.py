@@ -77,9 +77,22 @@ class DatasetRefConfig:
             return Path(self.root)
         if not self.repo_id:
             raise ValueError("a dataset needs --dataset.repo_id or --dataset.root")
+        from huggingface_hub.errors import HFValidationError
+        from huggingface_hub.utils import validate_repo_id
         from lerobot.utils.constants import HF_LEROBOT_HOME
 
-        return HF_LEROBOT_HOME / self.repo_id
+        # The id becomes a path under LeRobot's home: '../..' would write anywhere.
+        try:
+            validate_repo_id(self.repo_id)
+        except HFValidationError as err:
+            raise ValueError(
+                f"repo_id={self.repo_id!r} is not a hub id ({str(err).splitlines()[0]}); allowed: "
+                "'name' or 'namespace/name' of letters, digits, '-', '_' and '.' (or give a root)"
+            ) from None
+        path = HF_LEROBOT_HOME / self.repo_id
+        if not path.resolve().is_relative_to(HF_LEROBOT_HOME.resolve()):
+            raise ValueError(f"repo_id={self.repo_id!r} points outside {HF_LEROBOT_HOME}; give a root instead")
+        return path
 
 
 @dataclass
