@@ -165,3 +165,26 @@ def test_act_modified_needs_prompts_from_the_env(act_modified_checkpoint, tmp_pa
         check=False,
     )
     assert out.returncode != 0 and "--env.prompts=true" in out.stdout + out.stderr
+
+
+def test_act_modified_refuses_frames_of_another_size(act_modified_checkpoint, tmp_path):
+    out = run_cli(
+        "lerobot-eval",
+        f"--policy.path={act_modified_checkpoint}",
+        "--env.type=condground",
+        "--env.observation_height=96",
+        "--env.observation_width=128",
+        "--env.episode_length=4",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        "--eval.use_async_envs=false",
+        f"--output_dir={tmp_path}",
+        check=False,
+    )
+    # The traceback's last word (before tqdm's bar clean-up) is the fix.
+    last = [line for line in out.stderr.splitlines() if line.startswith("ValueError")][-1]
+    assert (
+        out.returncode != 0
+        and "frames are 96x128, but this act_modified checkpoint was trained on 240x320" in last
+    )
+    assert "--env.observation_height=240 --env.observation_width=320" in last

@@ -339,6 +339,15 @@ class ACTModifiedPolicy(ACTPolicy):
         logger.info("Warm start from %s; fresh: %s", source, ", ".join(missing) or "nothing")
 
     def _images_listed(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        # The backbone takes any size, and the attention loss and prompt geometry would silently be wrong:
+        # frames of another size than the training data are an error wherever the policy runs.
+        for key, feature in self.config.image_features.items():
+            if key in batch and tuple(batch[key].shape[-2:]) != tuple(feature.shape[-2:]):
+                (h, w), (th, tw) = batch[key].shape[-2:], feature.shape[-2:]
+                raise ValueError(
+                    f"{key} frames are {h}x{w}, but this act_modified checkpoint was trained on {th}x{tw}; "
+                    f"render at the training size (--env.observation_height={th} --env.observation_width={tw})"
+                )
         batch = dict(batch)
         batch[OBS_IMAGES] = [batch[key] for key in self.config.image_features]
         return batch
