@@ -8,7 +8,9 @@ naming the value and what is allowed, with exit code 2; anything else is a bug a
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
 import logging
 import sys
 
@@ -73,12 +75,34 @@ def _usage() -> str:
 
 
 def _message(err: BaseException) -> str:
-    """draccus wraps a config's own ValueError ("Couldn't instantiate class ..."): the cause names the value."""
-    while isinstance(err, draccus.utils.ParsingError) and isinstance(
-        err.__cause__ or err.__context__, Exception
+    """draccus wraps a config's own ValueError ("Couldn't instantiate class ..."): the cause names the value.
+    Its DecodingError ("`env.fps`: Couldn't parse 'abc' into an int") already does, unlike int()'s cause."""
+    while (
+        isinstance(err, draccus.utils.ParsingError)
+        and not isinstance(err, draccus.utils.DecodingError)
+        and isinstance(err.__cause__ or err.__context__, Exception)
     ):
         err = err.__cause__ or err.__context__
     return " ".join(str(err).split())
+
+
+def _parse(script, args: list[str], prog: str):
+    """The command's config. argparse answers an unknown flag with the whole usage (every flag) and exits:
+    only its last line, the error, is kept, with where to find the flags."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            parse = getattr(script, "parse", None)
+            return parse(args) if parse else draccus.parse(script.Config, args=args, prog=prog)
+    except SystemExit as stop:
+        if stop.code != 2:
+            raise
+        last = captured.getvalue().strip().splitlines()[-1:] or ["bad arguments"]
+        raise ValueError(
+            f"{last[0].removeprefix(f'{prog}: error: ')}; `{prog} --help` lists the flags"
+        ) from None
+    finally:
+        sys.stderr.write(captured.getvalue() if "usage:" not in captured.getvalue() else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,9 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     script = importlib.import_module(f"lerobot_condground.scripts.{COMMANDS[command][0]}")
     prog = f"condground {command}"
     try:
-        parse = getattr(script, "parse", None)
-        cfg = parse(args) if parse else draccus.parse(script.Config, args=args, prog=prog)
-        script.main(cfg)
+        script.main(_parse(script, args, prog))
     except BAD_INPUT as err:
         print(f"{prog}: {_message(err)}", file=sys.stderr)
         return 2

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from lerobot_condground.core.configs import check_at_least
 from lerobot_condground.evaluation.checkpoints import resolve_device
 from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
 
@@ -34,6 +35,9 @@ class PolicyBenchConfig:
     # Model width (ACT's default is 512); smaller for quick checks.
     dim_model: int = 512
     chunk_size: int = 100
+
+    def __post_init__(self):
+        check_at_least(self, "policy.", batch_size=1, steps=1, dim_model=8, chunk_size=1)
 
 
 def _policy_config(name: str, cfg: PolicyBenchConfig, device: str, dataset_features: dict):

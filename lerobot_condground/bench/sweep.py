@@ -13,6 +13,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from lerobot_condground.core.configs import check_at_least
+
 
 @dataclass
 class SweepBenchConfig:
@@ -24,6 +26,9 @@ class SweepBenchConfig:
     episode_length: int = 100
     device: str = "cpu"
     dim_model: int = 512
+
+    def __post_init__(self):
+        check_at_least(self, "sweep.", episodes=1, batch_size=1, episode_length=1, dim_model=8)
 
 
 def save_bench_checkpoint(repo_id: str, root: str, out: Path, cfg: SweepBenchConfig) -> Path:

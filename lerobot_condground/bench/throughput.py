@@ -18,6 +18,7 @@ import numpy as np
 from lerobot_condground.bench.policy import PolicyBenchConfig
 from lerobot_condground.bench.sweep import SweepBenchConfig
 from lerobot_condground.bench.training import TrainBenchConfig
+from lerobot_condground.core.configs import check_at_least
 
 
 @dataclass
@@ -39,6 +40,9 @@ class BenchConfig:
     train: TrainBenchConfig = field(default_factory=TrainBenchConfig)
     # Print one JSON object instead of a table.
     json: bool = False
+
+    def __post_init__(self):
+        check_at_least(self, "", seconds=0.1, rounds=1, record_episodes=1)
 
 
 def _rate(fn, seconds: float) -> float:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
+from lerobot_condground.core.configs import check_at_least
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_POLICY
 from lerobot_condground.datasets.frame_cache import FrameCache
 from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
@@ -40,6 +41,9 @@ class TrainBenchConfig:
     episodes: int = 2
     # Model width override for quick checks (None: the configuration's).
     dim_model: int | None = None
+
+    def __post_init__(self):
+        check_at_least(self, "train.", threads=1, batch_size=1, steps=1, episodes=1, dim_model=8)
 
 
 def _configs(cfg: TrainBenchConfig, features: dict) -> dict:

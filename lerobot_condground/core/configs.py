@@ -20,6 +20,15 @@ def check_seed(flag: str, first: int, count: int = 1) -> None:
         raise ValueError(f"{flag}={first} is not allowed; allowed: a seed from 0 to {SEED_LIMIT - count}")
 
 
+def check_at_least(group: object, prefix: str, **minimums: float) -> None:
+    """Each named field of a config group (flags `--<prefix><name>`) must be at least its minimum; None
+    stands for "the default" and passes. NaN fails too."""
+    for name, low in minimums.items():
+        value = getattr(group, name)
+        if value is not None and not value >= low:
+            raise ValueError(f"--{prefix}{name}={value} is not allowed; allowed: a number >= {low:g}")
+
+
 @dataclass
 class PolicyRefConfig:
     # A LeRobot checkpoint: a pretrained_model directory or a hub id (offline: from the cache).
@@ -91,7 +100,9 @@ class DatasetRefConfig:
             ) from None
         path = HF_LEROBOT_HOME / self.repo_id
         if not path.resolve().is_relative_to(HF_LEROBOT_HOME.resolve()):
-            raise ValueError(f"repo_id={self.repo_id!r} points outside {HF_LEROBOT_HOME}; give a root instead")
+            raise ValueError(
+                f"repo_id={self.repo_id!r} points outside {HF_LEROBOT_HOME}; give a root instead"
+            )
         return path
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_condground.core.configs import DatasetOutputConfig, check_seed
+from lerobot_condground.core.configs import DatasetOutputConfig, check_at_least, check_seed
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.labels import (
     OBS_PHASE,
@@ -74,11 +74,9 @@ class RecordConfig:
     progress: bool = True
 
     def __post_init__(self):
+        check_at_least(self.dataset, "dataset.", num_episodes=1, checkpoint_every=1)
+        check_at_least(self, "", max_consecutive_failures=1)
         check_seed("--seed", self.seed, self.dataset.num_episodes)
-        if self.dataset.num_episodes < 1:
-            raise ValueError(f"dataset.num_episodes={self.dataset.num_episodes} must be at least 1")
-        if self.dataset.checkpoint_every < 1:
-            raise ValueError(f"dataset.checkpoint_every={self.dataset.checkpoint_every} must be at least 1")
 
 
 def dataset_features(env_cfg: CondGroundEnvConfig, video: bool, labels: bool = True) -> dict:

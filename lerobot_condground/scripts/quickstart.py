@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_condground.core.conditions import TASKS
+from lerobot_condground.core.configs import check_at_least
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
 
 CONDITIONS = ("clean", "full_mixed")
@@ -46,6 +47,7 @@ class QuickstartTrainConfig:
             raise ValueError(
                 f"--train.variant={self.variant!r} is not allowed; allowed: {', '.join(VARIANTS)}"
             )
+        check_at_least(self, "train.", episodes=1, steps=1, batch_size=1)
 
 
 @dataclass
@@ -53,6 +55,9 @@ class QuickstartEvalConfig:
     # Policy rollouts per condition.
     episodes: int = 6
     episode_length: int = 300
+
+    def __post_init__(self):
+        check_at_least(self, "eval.", episodes=1, episode_length=1)
 
 
 @dataclass
@@ -65,6 +70,9 @@ class QuickstartDiagnosisConfig:
     pairs: int = 2
     frame_stride: int = 4
     workers: int | None = None
+
+    def __post_init__(self):
+        check_at_least(self, "diagnosis.", episodes=1, probe_episodes=1, pairs=1, frame_stride=1, workers=1)
 
 
 @dataclass
@@ -81,6 +89,13 @@ class Config:
     eval: QuickstartEvalConfig = field(default_factory=QuickstartEvalConfig)
     diagnosis: QuickstartDiagnosisConfig = field(default_factory=QuickstartDiagnosisConfig)
     progress: bool = True
+
+    def __post_init__(self):
+        if not self.output_dir.strip():
+            raise ValueError(
+                "--output_dir is empty; allowed: a directory for the datasets, policy and report"
+            )
+        check_at_least(self, "", episodes_per_task=1, expert_episodes=1)
 
 
 def _script(name: str) -> str:
