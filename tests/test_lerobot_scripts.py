@@ -188,3 +188,5 @@ def test_act_modified_refuses_frames_of_another_size(act_modified_checkpoint, tm
         and "frames are 96x128, but this act_modified checkpoint was trained on 240x320" in last
     )
     assert "--env.observation_height=240 --env.observation_width=320" in last
+    # ... and it is said before the traceback too.
+    assert out.stderr.index("this act_modified checkpoint was trained on") < out.stderr.index("Traceback")

@@ -100,7 +100,10 @@ def check_processor_steps(path: str, trust_remote_code: bool) -> None:
     from lerobot.processor.pipeline import ProcessorStepRegistry
 
     register_plugins()
-    registered = {name: f"{c.__module__}.{c.__name__}" for name, c in ProcessorStepRegistry._registry.items()}
+    registered = {
+        name: f"{cls.__module__}.{cls.__name__}"
+        for name, cls in ((name, ProcessorStepRegistry.get(name)) for name in ProcessorStepRegistry.list())
+    }
     for file, step in processor_steps(path):
         if "registry_name" in step:
             if step["registry_name"] in registered:

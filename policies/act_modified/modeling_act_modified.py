@@ -251,7 +251,7 @@ class ACTModified(ACT):
     def _prompt_token(self, batch: dict[str, Tensor], phase: Tensor) -> Tensor:
         missing = [key for key in (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE) if key not in batch]
         if missing:
-            raise KeyError(
+            _refuse(
                 f"act_modified with prompts needs {missing} in every observation. The condground env sends them "
                 "(--env.prompts=true, the default); a robot must provide them as observations."
             )
@@ -280,6 +280,13 @@ class ACTModified(ACT):
         if mode:  # weights may change from here on; eval() is called before every prediction and keeps it
             self._prompt_cache = None
         return super().train(mode)
+
+
+def _refuse(message: str) -> None:
+    """Stock scripts (lerobot-eval, lerobot-record) end on a long traceback: the fix is logged before it
+    and is its last line too."""
+    logger.error(message)
+    raise ValueError(message)
 
 
 def prompt_as_image(crop: Tensor) -> Tensor:
@@ -344,7 +351,7 @@ class ACTModifiedPolicy(ACTPolicy):
         for key, feature in self.config.image_features.items():
             if key in batch and tuple(batch[key].shape[-2:]) != tuple(feature.shape[-2:]):
                 (h, w), (th, tw) = batch[key].shape[-2:], feature.shape[-2:]
-                raise ValueError(
+                _refuse(
                     f"{key} frames are {h}x{w}, but this act_modified checkpoint was trained on {th}x{tw}; "
                     f"render at the training size (--env.observation_height={th} --env.observation_width={tw})"
                 )

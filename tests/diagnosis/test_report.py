@@ -522,3 +522,14 @@ def test_input_json_cannot_reach_outside_its_folder_or_inject_html(inputs, tmp_p
         text = path.read_text()
         assert "<script>alert" not in text and "<img src=x" not in text, path
         assert "&lt;script&gt;alert(2)&lt;/script&gt;" in text, path
+
+
+def test_a_tampered_manifest_deletes_nothing(inputs, tmp_path):
+    out = tmp_path / "r.html"
+    build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(out)))
+    victim = tmp_path / "victim.png"
+    victim.write_bytes(png_bytes())
+    (tmp_path / "r_files" / "condground-report.json").write_text(json.dumps({"figures": ["../victim.png"]}))
+    with pytest.raises(ValueError, match="is damaged .*not a plain PNG file name"):
+        build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(out)))
+    assert victim.is_file()

@@ -83,9 +83,22 @@ def render_markdown(doc: Document, files_dir: str) -> tuple[str, dict[str, bytes
     return text, {f"{figure.name}.png": figure.png for figure in doc.figures}
 
 
-MANIFEST = (
-    "condground-report.json"  # in NAME_files/: what the last run wrote, the only files a rerun replaces
-)
+# In NAME_files/: the figures the last run wrote, the only files a rerun replaces or removes.
+MANIFEST = "condground-report.json"
+
+
+def _written_before(manifest_path: Path) -> set[str] | None:
+    """The figure names an earlier report wrote (None: no earlier report). The manifest is a file on disk
+    like any input: a name that is not a plain PNG file name is refused, never deleted."""
+    if not manifest_path.is_file():
+        return None
+    try:
+        names = json.loads(manifest_path.read_text())["figures"]
+        if not all(isinstance(n, str) and re.fullmatch(r"[\w.-]+\.png", n) and n[0] != "." for n in names):
+            raise ValueError("a figure name is not a plain PNG file name")
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{manifest_path} is damaged ({err}); choose another --output") from None
+    return set(names)
 
 
 def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
@@ -99,16 +112,12 @@ def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
     md_path = html_path.with_suffix(".md")
     files_dir = html_path.parent / f"{html_path.stem}_files"
     manifest_path = files_dir / MANIFEST
-    ours: set[str] = set()
-    if manifest_path.is_file():
-        try:
-            written = json.loads(manifest_path.read_text())
-            ours = {html_path.name, md_path.name} | {files_dir.name + "/" + n for n in written["figures"]}
-        except (json.JSONDecodeError, KeyError, TypeError) as err:
-            raise ValueError(f"{manifest_path} is damaged ({err}); choose another --output") from None
+    before = _written_before(manifest_path)
     text, files = render_markdown(doc, files_dir.name)
-    targets = [html_path, md_path, *(files_dir / name for name in files)]
-    foreign = [p for p in targets if p.exists() and str(p.relative_to(html_path.parent)) not in ours]
+    ours = set() if before is None else {html_path, md_path, *(files_dir / n for n in before)}
+    foreign = [
+        p for p in (html_path, md_path, *(files_dir / n for n in files)) if p.exists() and p not in ours
+    ]
     if foreign:
         raise FileExistsError(
             f"--output={html_path} would overwrite {foreign[0]}, which condground report did not write; "
@@ -116,10 +125,8 @@ def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
         )
     files_dir.mkdir(parents=True, exist_ok=True)
     html_path.write_text(render_html(doc), encoding="utf-8")
-    for name in sorted(ours):  # a rerun with fewer figures must not leave old ones behind
-        stale = html_path.parent / name
-        if name.startswith(files_dir.name + "/") and stale.name not in files and stale.is_file():
-            stale.unlink()
+    for name in (before or set()) - set(files):  # a rerun with fewer figures must not leave old ones behind
+        (files_dir / name).unlink(missing_ok=True)
     for name, png in files.items():
         (files_dir / name).write_bytes(png)
     manifest_path.write_text(json.dumps({"figures": sorted(files)}, indent=1))
