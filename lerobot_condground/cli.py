@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     command, args = argv[0], argv[1:]
     if command not in COMMANDS:
         print(
-            f"condground: unknown command {command!r}; allowed: {', '.join(COMMANDS)}\n\n{_usage()}",
+            f"condground: unknown command {command!r}; allowed: {', '.join(COMMANDS)} "
+            "(`condground --help` says what each does)",
             file=sys.stderr,
         )
         return 2
