@@ -237,7 +237,9 @@ def test_bad_input(tiny_checkpoints, tmp_path):
     fake = tmp_path / "diffusion"
     fake.mkdir()
     (fake / "config.json").write_text(json.dumps({"type": "diffusion"}))
-    (fake / "model.safetensors").write_bytes(b"")
+    from safetensors.torch import save_file
+
+    save_file({}, str(fake / "model.safetensors"))  # whole, or the weights check would refuse it first
     with pytest.raises(ValueError, match=r"'diffusion' policy.*ACT-family.*act_modified"):
         _diagnose(fake, tmp_path / "x")
     with pytest.raises(ValueError, match="ACT-family"):
