@@ -151,35 +151,30 @@ def test_stock_lerobot_eval_runs_act_modified(act_modified_checkpoint, tmp_path)
     assert all(r in (0.0, 1.0, 2.0, 3.0) for r in info["per_task"][0]["metrics"]["max_rewards"])
 
 
-def test_act_modified_needs_prompts_from_the_env(act_modified_checkpoint, tmp_path):
-    out = run_cli(
+def one_episode_eval(checkpoint, out, *flags: str):
+    """Stock lerobot-eval, one short episode of the condground env with `flags`; may fail."""
+    return run_cli(
         "lerobot-eval",
-        f"--policy.path={act_modified_checkpoint}",
+        f"--policy.path={checkpoint}",
         "--env.type=condground",
-        "--env.prompts=false",
+        *flags,
         "--env.episode_length=4",
         "--eval.n_episodes=1",
         "--eval.batch_size=1",
         "--eval.use_async_envs=false",
-        f"--output_dir={tmp_path}",
+        f"--output_dir={out}",
         check=False,
     )
+
+
+def test_act_modified_needs_prompts_from_the_env(act_modified_checkpoint, tmp_path):
+    out = one_episode_eval(act_modified_checkpoint, tmp_path, "--env.prompts=false")
     assert out.returncode != 0 and "--env.prompts=true" in out.stdout + out.stderr
 
 
 def test_act_modified_refuses_frames_of_another_size(act_modified_checkpoint, tmp_path):
-    out = run_cli(
-        "lerobot-eval",
-        f"--policy.path={act_modified_checkpoint}",
-        "--env.type=condground",
-        "--env.observation_height=96",
-        "--env.observation_width=128",
-        "--env.episode_length=4",
-        "--eval.n_episodes=1",
-        "--eval.batch_size=1",
-        "--eval.use_async_envs=false",
-        f"--output_dir={tmp_path}",
-        check=False,
+    out = one_episode_eval(
+        act_modified_checkpoint, tmp_path, "--env.observation_height=96", "--env.observation_width=128"
     )
     # The traceback's last word (before tqdm's bar clean-up) is the fix.
     last = [line for line in out.stderr.splitlines() if line.startswith("ValueError")][-1]
