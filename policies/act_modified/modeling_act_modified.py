@@ -20,6 +20,7 @@ Design choices:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from pathlib import Path
@@ -105,16 +106,24 @@ def _resnet(config: ACTModifiedConfig) -> nn.Module:
         channels=(width, 2 * width, 4 * width, 8 * width),
         stem_width=width,
         norm_layer=norm_layer,
+        output_stride=16 if config.replace_final_stride_with_dilation else 32,
     )
 
 
 class ACTModified(ACT):
     def __init__(self, config: ACTModifiedConfig):
-        super().__init__(config)
-        dim = config.dim_model
-        if config.image_features and (
+        rebuild = config.image_features and (
             config.backbone_norm != "frozen_batchnorm" or config.backbone_width != 64
-        ):
+        )
+        # torchvision's BasicBlock refuses dilation; the narrow ResNet rebuilt below takes it.
+        super().__init__(
+            dataclasses.replace(config, replace_final_stride_with_dilation=False)
+            if rebuild and config.backbone_width != 64
+            else config
+        )
+        self.config = config
+        dim = config.dim_model
+        if rebuild:
             # ACT builds its ResNet with FrozenBatchNorm2d whatever the weights; rebuilt the same way with
             # normalization that trains, and narrower if asked.
             resnet = _resnet(config)

@@ -171,6 +171,23 @@ def test_narrow_backbone_halves_every_stage_and_trains(variant):
     assert torch.isfinite(policy.select_action(observation(make_batch(1)))).all()
 
 
+def test_narrow_backbone_takes_the_final_dilation():
+    """replace_final_stride_with_dilation on the narrow ResNet doubles the feature map's sides (stride 16)
+    instead of being ignored, and the attention terms pool their masks onto that finer grid."""
+    coarse = make_policy(variant="full", backbone_norm="batchnorm", backbone_width=32)
+    fine = make_policy(
+        variant="full", backbone_norm="batchnorm", backbone_width=32, replace_final_stride_with_dilation=True
+    )
+    image = torch.rand(B, 3, H, W)
+    coarse_hw = coarse.model.backbone(image)["feature_map"].shape[2:]
+    assert fine.model.backbone(image)["feature_map"].shape[2:] == (2 * coarse_hw[0], 2 * coarse_hw[1])
+    fine.train()
+    loss, terms = fine(make_batch())
+    loss.backward()
+    assert torch.isfinite(loss) and terms["attention_on_relevant"] > 0
+    assert fine.model.backbone.conv1.weight.grad.abs().sum() > 0
+
+
 def test_every_loss_term_holds_under_bf16_autocast():
     """lerobot-train --policy.use_amp=true runs forward under bf16 autocast: the recomputed attention softmax,
     the phase cross-entropy, the attention terms and the prompt encoding must stay within bf16 rounding of
