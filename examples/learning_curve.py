@@ -91,6 +91,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--csv_dir", type=Path, required=True)
+    parser.add_argument("--suffix", default="", help="run-name suffix (learning_curve.sh: _demos<DEMOS>)")
     parser.add_argument("runs", nargs="+", help="TASK:VARIANT[:FLAG,...] as given to learning_curve.sh")
     args = parser.parse_args()
     args.csv_dir.mkdir(parents=True, exist_ok=True)
@@ -100,12 +101,12 @@ def main() -> None:
     for task, runs in by_task.items():
         fig, (ax_loss, ax_success) = plt.subplots(1, 2, figsize=(10, 3.6))
         for run in runs:
-            success, loss = curve(args.out, run)
-            stem = run_name(run)
+            success, loss = curve(args.out, run + args.suffix)
+            stem = run_name(run + args.suffix)
             success.to_csv(args.csv_dir / f"{stem}.csv", index=False, float_format="%.4f")
             loss.to_csv(args.csv_dir / f"{stem}_loss.csv", index=False)
             print(run, "\n", success.to_string(index=False))
-            label = run.split(":", 1)[1]
+            label = run.split(":", 1)[1] + args.suffix
             ax_loss.plot(loss.steps, loss.l1_loss, label=label)
             ax_success.errorbar(
                 success.minutes,
@@ -126,7 +127,7 @@ def main() -> None:
             ax.legend()
         fig.suptitle(f"act_modified from scratch on a 2-core CPU, {task}")
         fig.tight_layout()
-        fig.savefig(args.csv_dir / f"{task}.png", dpi=110)
+        fig.savefig(args.csv_dir / f"{task}{args.suffix}.png", dpi=110)
 
 
 if __name__ == "__main__":

@@ -11,12 +11,15 @@
 # A run is TASK:VARIANT[:FLAG,FLAG...] (extra lerobot-train flags, comma-separated, applied after the
 # configuration's). A run is named by its spec. MINUTES is each run's total training time: rerunning skips
 # finished evaluations and runs that had their MINUTES, and resumes the others from their last checkpoint.
+# DEMOS clean demonstrations per task (default 100); other counts record into $OUT/data<DEMOS> (a rerun
+# with more resumes the recording) and name their runs <task>_<variant>[_<flags>]_demos<DEMOS>.
 set -euo pipefail
 OUT=${OUT:-outputs/learning-curve}
 RUNS=${RUNS:-"PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard"}
 MINUTES=${MINUTES:-60}
 EVERY=${EVERY:-1000}        # steps between saved (and evaluated) checkpoints
 EPISODES=${EPISODES:-50}    # clean rollouts per checkpoint
+DEMOS=${DEMOS:-100}         # clean demonstrations per task
 THREADS=${THREADS:-1}       # torch threads per training run
 TRAIN=${TRAIN:-condground train}
 CSV_DIR=${CSV_DIR:-docs/learning-curve}
@@ -24,12 +27,15 @@ export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 WANDB_MODE=disabled
 read -r -a TRAIN_FLAGS <<< "$(python -m lerobot_condground.core.training)"
 SIZE=$(python -c "from lerobot_condground.core.training import CPU_FRAME_SIZE as s; print(s[0], s[1])")
 
-name() { echo "$1" | tr ':,=./' '_____'; }
+DATA=$OUT/data; SUFFIX=
+[ "$DEMOS" = 100 ] || { DATA=$OUT/data$DEMOS; SUFFIX=_demos$DEMOS; }
+name() { echo "$1$SUFFIX" | tr ':,=./' '_____'; }
 
+episodes() { python -c "import json, sys; print(json.load(open(sys.argv[1]))['total_episodes'])" "$1" 2>/dev/null; }
 for task in $(for run in $RUNS; do echo "${run%%:*}"; done | sort -u); do
-  [ -f "$OUT/data/$task/meta/info.json" ] || condground record --env.task="$task" --env.condition=clean \
-    --env.observation_height="${SIZE% *}" --env.observation_width="${SIZE#* }" \
-    --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task" --dataset.num_episodes=100 --progress=false
+  [ "$(episodes "$DATA/$task/meta/info.json")" = "$DEMOS" ] || condground record --env.task="$task" \
+    --env.condition=clean --env.observation_height="${SIZE% *}" --env.observation_width="${SIZE#* }" \
+    --dataset.repo_id="local/$task" --dataset.root="$DATA/$task" --dataset.num_episodes="$DEMOS" --progress=false
 done
 
 trained_s() { awk 'NF == 2 {t += $2 - $1} END {print t + 0}' "$1.start" 2>/dev/null || echo 0; }
@@ -48,7 +54,7 @@ for run in $RUNS; do
   else
     # shellcheck disable=SC2206
     args=(--policy.type=act_modified --policy.variant="$variant" --policy.device=cpu --policy.push_to_hub=false
-      "${TRAIN_FLAGS[@]}" ${extra//,/ } --dataset.repo_id="local/$task" --dataset.root="$OUT/data/$task"
+      "${TRAIN_FLAGS[@]}" ${extra//,/ } --dataset.repo_id="local/$task" --dataset.root="$DATA/$task"
       --steps=1000000 --save_freq="$EVERY" --log_freq=50 --num_workers=0 --wandb.enable=false --seed=0
       --output_dir="$dir")
     log="$dir.log"
@@ -75,4 +81,4 @@ for run in $RUNS; do  # one run's checkpoints after another, the runs side by si
 done
 wait
 
-python examples/learning_curve.py --out="$OUT" --csv_dir="$CSV_DIR" $RUNS
+python examples/learning_curve.py --out="$OUT" --csv_dir="$CSV_DIR" --suffix="$SUFFIX" $RUNS
