@@ -115,11 +115,10 @@ class ACTModified(ACT):
         rebuild = config.image_features and (
             config.backbone_norm != "frozen_batchnorm" or config.backbone_width != 64
         )
-        # torchvision's BasicBlock refuses dilation; the narrow ResNet rebuilt below takes it.
+        # ACT's own backbone is replaced below when rebuilt; built without dilation, which torchvision's
+        # BasicBlock refuses and the narrow ResNet takes.
         super().__init__(
-            dataclasses.replace(config, replace_final_stride_with_dilation=False)
-            if rebuild and config.backbone_width != 64
-            else config
+            dataclasses.replace(config, replace_final_stride_with_dilation=False) if rebuild else config
         )
         self.config = config
         dim = config.dim_model
