@@ -35,6 +35,10 @@ COMMANDS = {
         "quickstart",
         "Record demos, train a small act_modified (lerobot-train), evaluate it (lerobot-eval), print stages.",
     ),
+    "reproduce": (
+        "reproduce",
+        "The paper's whole experiment (record, train 4 variants, sweep, diagnose, probe, report), resumable.",
+    ),
     "sweep": (
         "sweep",
         "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",

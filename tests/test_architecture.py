@@ -32,9 +32,10 @@ RANKS = {
     "evaluation": 6,
     "diagnosis": 7,
     "bench": 8,
-    "scripts": 9,
-    "registration": 10,
-    "cli": 11,
+    "experiments": 9,  # whole studies run as commands of every stage
+    "scripts": 10,
+    "registration": 11,
+    "cli": 12,
 }
 # Modules that implement one command: only the command layer (scripts, bench, cli) may import them.
 COMMAND_MODULES = {
@@ -47,7 +48,7 @@ COMMAND_MODULES = {
     "diagnosis.report",
     "labelling.prompts",
 }
-COMMAND_LAYER = {"scripts", "bench", "cli"}
+COMMAND_LAYER = {"scripts", "bench", "experiments", "cli"}
 
 
 def _modules() -> dict[str, Path]:

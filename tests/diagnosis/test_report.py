@@ -52,12 +52,12 @@ def checkpoint(label: str, seed: int, task: str) -> dict:
     }
 
 
-def sweep_manifest(task: str, conditions=CONDITIONS, seed_offset: int = 0) -> dict:
+def sweep_manifest(task: str, conditions=CONDITIONS, seed_offset: int = 0, counterbalanced=False) -> dict:
     grid = {
         "task": task,
         "conditions": list(conditions),
         "condition_specs": {c: asdict(NAMED_CONDITIONS[c]) for c in conditions},
-        "counterbalanced": True,
+        "counterbalanced": counterbalanced,
         "eval_seeds": 1,
         "n_episodes": EPISODES,
         "batch_size": 5,
@@ -108,7 +108,7 @@ def sweep_rows(manifest: dict, rng) -> pd.DataFrame:
                         "task": grid["task"],
                         "condition": condition,
                         "condition_spec": json.dumps(grid["condition_specs"][condition]),
-                        "counterbalanced": True,
+                        "counterbalanced": grid["counterbalanced"],
                         "eval_seed": 0,
                         "episode": episode,
                         "layout_seed": grid["seed_offset"] + episode,
@@ -144,8 +144,10 @@ def sweep_rows(manifest: dict, rng) -> pd.DataFrame:
     return frame
 
 
-def write_sweep(folder: Path, task: str, seed: int, conditions=CONDITIONS, seed_offset: int = 0) -> Path:
-    manifest = sweep_manifest(task, conditions, seed_offset)
+def write_sweep(
+    folder: Path, task: str, seed: int, conditions=CONDITIONS, seed_offset: int = 0, counterbalanced=False
+) -> Path:
+    manifest = sweep_manifest(task, conditions, seed_offset, counterbalanced)
     folder.mkdir(parents=True)
     (folder / "sweep.json").write_text(json.dumps(manifest, indent=2))
     write_table(
@@ -381,11 +383,11 @@ def test_parse_report_args_accepts_repeated_and_comma_separated_dirs():
             "--input_dir=c,d",
             "--input_dir=[e, f]",
             "--output=x/r.html",
-            "--title=T",
+            "--title=Run 3: ablation, [draft]",
         ]
     )
     assert cfg.input_dir == ["a", "b", "c", "d", "e", "f"]
-    assert (cfg.output, cfg.title) == ("x/r.html", "T")
+    assert (cfg.output, cfg.title) == ("x/r.html", "Run 3: ablation, [draft]")  # not read as YAML
     assert parse_report_args([]).output == "outputs/report/report.html"
 
 
@@ -460,6 +462,20 @@ def test_sweeps_split_by_condition_are_paired_across_dirs(tmp_path):
     table = text[text.index('id="condition-differences"') :]
     assert table[: table.index("</table>")].count("<tr>") == 1 + 2 * 2  # header + policies x conditions
     assert "Not paired" not in text
+
+
+def test_a_counterbalanced_sweep_is_its_own_condition(tmp_path):
+    # the same checkpoints, layouts and condition with permuted assets: another scene distribution
+    plain = write_sweep(tmp_path / "plain", TASKS[0], 1, ["clean", "full_mixed"])
+    permuted = write_sweep(tmp_path / "cb", TASKS[0], 2, ["full_mixed"], counterbalanced=True)
+    _, md_path = build_report(
+        ReportConfig(input_dir=[str(plain), str(permuted)], output=str(tmp_path / "r.html"))
+    )
+    stages = md_path.read_text().split("## Stage metrics")[1].split("\n## ")[0]
+    rows = [line for line in stages.splitlines() if "act_modified/full" in line]
+    assert [row.split(" | ")[2] for row in rows] == ["clean", "full_mixed", "full_mixed (counterbalanced)"]
+    table1 = md_path.read_text().split("## Table I")[1].split("\n## ")[0]
+    assert "counterbalanced" not in table1  # Table I is the paper's plain full_mixed
 
 
 def test_sweeps_of_other_layouts_combine_but_do_not_pair(tmp_path):

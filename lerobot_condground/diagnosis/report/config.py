@@ -22,9 +22,14 @@ def parse_report_args(argv: list[str]) -> ReportConfig:
     flag repeated (`--input_dir=A --input_dir=B`, `--input_dir A`) and comma-separated values."""
     dirs: list[str] = []
     rest: list[str] = []
+    title = None
     i = 0
     while i < len(argv):
         arg = argv[i]
+        if arg.startswith("--title="):  # taken as written: draccus would read "A: B" as a YAML mapping
+            title = arg.partition("=")[2]
+            i += 1
+            continue
         if arg.startswith("--input_dir="):
             value = arg.partition("=")[2]
         elif arg == "--input_dir" and i + 1 < len(argv):
@@ -41,4 +46,6 @@ def parse_report_args(argv: list[str]) -> ReportConfig:
         dirs += [v.strip().strip("'\"") for v in value.split(",") if v.strip()]
     cfg = draccus.parse(ReportConfig, args=rest, prog="condground report")
     cfg.input_dir = [*cfg.input_dir, *dirs]
+    if title is not None:
+        cfg.title = title
     return cfg

@@ -23,6 +23,7 @@ KIND_FILES = {
 }
 # One episode: the same weights on the same layout under the same condition and prompt. Sweeps of one
 # checkpoint with different seed offsets hold different layouts and may be combined.
+COUNTERBALANCED = " (counterbalanced)"
 EPISODE_KEY = ("checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -75,6 +76,9 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
         raise ValueError(
             f"{folder}: results.parquet holds {int(dup.sum())} rows with a repeated episode, e.g. {example}"
         )
+    if grid.get("counterbalanced"):
+        # Another scene distribution than the plain condition of the same name: its own rows in every table.
+        frame = frame.assign(condition=frame["condition"] + COUNTERBALANCED)
     return frame.assign(source=str(folder))
 
 

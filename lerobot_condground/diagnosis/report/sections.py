@@ -31,7 +31,7 @@ from lerobot_condground.evaluation.statistics import (
 from .config import ReportConfig
 from .figures import difference_figure, probe_figure, stage_figure
 from .formatting import TASK_SHORT, fmt_diff, fmt_number, fmt_rate, metric_cell, pct, seed_spread, task_title
-from .inputs import Inputs
+from .inputs import COUNTERBALANCED, Inputs
 
 TABLE2_ROWS = {  # key in diagnostics.json "table2" -> row title
     "place_shift": "Place shift ↓",
@@ -122,7 +122,12 @@ def _label_order(labels, methods: dict[str, str | None]) -> list[str]:
 
 def _condition_order(conditions) -> list[str]:
     grid = list(PAPER_GRID)
-    return sorted(set(conditions), key=lambda c: (grid.index(c) if c in grid else len(grid), c))
+
+    def key(c: str) -> tuple:
+        plain = c.removesuffix(COUNTERBALANCED)  # right after the plain condition
+        return (grid.index(plain) if plain in grid else len(grid), plain, c != plain)
+
+    return sorted(set(conditions), key=key)
 
 
 def _task_order(tasks) -> list[str]:

@@ -1,0 +1,366 @@
+"""The paper's experiment as a plan: presets, the settings they resolve to, the stages and their estimated time.
+
+A stage is one command (`condground record`, the stock `lerobot-train`, `condground sweep`, `diagnose`,
+`probe`, `report`) writing into its own directory; it runs when the stages it reads are done. Estimates
+come from rates measured on the 2-core development machine (README, "Measured"), so they say what a run
+costs there and scale with this machine's cores.
+"""
+
+from __future__ import annotations
+
+import heapq
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from lerobot_condground.core.conditions import TASKS, check_task
+from lerobot_condground.core.configs import check_at_least
+from lerobot_condground.core.paper import METHODS, TABLE2_COLUMN
+from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
+
+VARIANT_ORDER = ("standard", "full", "augmentation", "augmentation_attention")
+
+# Preset values; every one is also a flag (a flag given wins). `policy` is the preset's lerobot-train policy
+# flags, before --train.extra_flags.
+PRESETS: dict[str, dict] = {
+    # What fits the 2-core CPU machine in a few sessions: the CPU training configuration
+    # (lerobot_condground/core/training.py) at the steps where its Task 1 curve peaked, one training seed,
+    # the conditions that carry the paper's claims, 2 x 50 rollouts (95 % intervals of about +-10 points).
+    "cpu": {
+        "tasks": "PickPlaceRandomBin-v0,PickPlaceFixedBin-v0",
+        "record.episodes": 100,
+        "record.observation_height": CPU_FRAME_SIZE[0],
+        "record.observation_width": CPU_FRAME_SIZE[1],
+        "train.variants": ",".join(VARIANT_ORDER),
+        "train.seeds": 1,
+        "train.steps": 9000,
+        "train.batch_size": CPU_BATCH_SIZE,
+        "train.save_freq": 1500,
+        "train.num_workers": 0,
+        "train.device": "cpu",
+        "eval.conditions": "clean,full_mixed,object_color_3,receptacle_shape_2,object_neither_3",
+        "eval.counterbalanced": "full_mixed",
+        "eval.seeds": 2,
+        "eval.n_episodes": 50,
+        "eval.batch_size": 10,
+        "diagnose.pairs": 20,
+        "probe.episodes": 50,
+        "jobs": 2,
+        "policy": policy_flags(),
+    },
+    # The paper's protocol (Results): 3 training seeds x 4 evaluation seeds x 50 rollouts over the full
+    # 20-condition grid, at LeRobot's ACT defaults (ImageNet ResNet-18, dim 512, chunk 100, CVAE) and the
+    # env's 240x320 camera, 100k steps of batch 8 (LeRobot's ACT recipe). A GPU machine's job.
+    "paper": {
+        "tasks": "PickPlaceRandomBin-v0,PickPlaceFixedBin-v0",
+        "record.episodes": 100,
+        "record.observation_height": 240,
+        "record.observation_width": 320,
+        "train.variants": ",".join(VARIANT_ORDER),
+        "train.seeds": 3,
+        "train.steps": 100_000,
+        "train.batch_size": 8,
+        "train.save_freq": 10_000,
+        "train.num_workers": 4,
+        "train.device": None,  # LeRobot picks the best device
+        "eval.conditions": "paper",
+        "eval.counterbalanced": "full_mixed",
+        "eval.seeds": 4,
+        "eval.n_episodes": 50,
+        "eval.batch_size": 10,
+        "diagnose.pairs": 20,
+        "probe.episodes": 50,
+        "jobs": 1,
+        "policy": [],
+    },
+}
+
+# Rates measured on the 2-core development machine, per core, by frame size of the preset's model.
+# Training samples/s: the learning curves (docs/learning-curve, one core per run, two runs side by side) for
+# the CPU configuration; `condground bench`'s policy cost at ACT's default size (2 cores, halved) otherwise.
+TRAIN_SAMPLES_PER_CORE_S = {
+    "cpu": {"standard": 41.0, "augmentation": 36.0, "augmentation_attention": 36.0, "full": 34.0},
+    "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
+}
+# Two torch threads trained the CPU configuration at 60 samples/s against 41 on one (quickstart, README):
+# a run on t threads goes t**0.55 times as fast.
+THREAD_SCALING = 0.55
+# Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): the learning curves' clean
+# evaluations at 96x128 (50 rollouts in about 3.5 minutes), the sweep benchmark at 240x320 (25.7 per minute
+# for 100-step episodes; up to 300 here).
+ROLLOUTS_PER_CORE_MIN = {"cpu": 14.0, "paper": 8.6}
+RECORD_S_PER_EPISODE = 4.0  # 100 clean episodes with labels and video in 395 s (2 cores)
+DIAGNOSE_S_PER_PAIR = 15.0  # a guess: one pair took 40 s with the command's start-up (toy run, busy machine)
+REPORT_S = 60.0
+
+
+@dataclass
+class RecordSettings:
+    # Clean expert demonstrations per task.
+    episodes: int | None = None
+    observation_height: int | None = None
+    observation_width: int | None = None
+
+
+@dataclass
+class TrainSettings:
+    # act_modified variants, separated by commas (standard, augmentation, augmentation_attention, full).
+    variants: str | None = None
+    seeds: int | None = None  # training seeds 0..seeds-1 per task and variant
+    steps: int | None = None
+    batch_size: int | None = None
+    save_freq: int | None = None  # steps between checkpoints: a killed run loses at most this many
+    num_workers: int | None = None
+    device: str | None = None
+    # More lerobot-train flags, separated by spaces, after the preset's (e.g. "--policy.dim_model=256").
+    extra_flags: str = ""
+
+
+@dataclass
+class EvalSettings:
+    # `paper` (all 20) or condition names separated by commas.
+    conditions: str | None = None
+    # Conditions evaluated again with counterbalanced assets (colors and shapes permuted); "" for none.
+    counterbalanced: str | None = None
+    seeds: int | None = None  # evaluation seeds per checkpoint
+    n_episodes: int | None = None  # rollouts per evaluation seed
+    batch_size: int | None = None
+    episode_length: int = 300  # env steps before a rollout counts as failed
+
+
+@dataclass
+class DiagnoseSettings:
+    pairs: int | None = None  # matched clean/distractor episode pairs (Table II), Task 2
+
+
+@dataclass
+class ProbeSettings:
+    episodes: int | None = None  # layouts of the prompt-swap probe, variants with prompts
+
+
+@dataclass
+class ReproduceConfig:
+    preset: str = "cpu"
+    output_dir: str = "outputs/reproduce"
+    # Tasks, separated by commas, in the order they run.
+    tasks: str | None = None
+    record: RecordSettings = field(default_factory=RecordSettings)
+    train: TrainSettings = field(default_factory=TrainSettings)
+    eval: EvalSettings = field(default_factory=EvalSettings)
+    diagnose: DiagnoseSettings = field(default_factory=DiagnoseSettings)
+    probe: ProbeSettings = field(default_factory=ProbeSettings)
+    # Stages run side by side, each on cores/jobs threads (training) or workers (evaluation).
+    jobs: int | None = None
+    # Print the plan (stages, counts, estimated time here) and stop.
+    dry_run: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.preset not in PRESETS:
+            raise ValueError(f"--preset={self.preset!r} is not allowed; allowed: {', '.join(PRESETS)}")
+        if not self.output_dir.strip():
+            raise ValueError("--output_dir is empty; allowed: a directory for every stage's outputs")
+        preset = PRESETS[self.preset]
+        for key, value in preset.items():
+            group, _, name = key.rpartition(".")
+            owner = getattr(self, group) if group else self
+            if key != "policy" and getattr(owner, name) is None:
+                setattr(owner, name, value)
+        for task in self.task_list():
+            check_task(task)
+        self.variant_list()
+        check_at_least(self.record, "record.", episodes=1, observation_height=1, observation_width=1)
+        check_at_least(self.train, "train.", seeds=1, steps=1, batch_size=1, save_freq=1, num_workers=0)
+        check_at_least(self.eval, "eval.", seeds=1, n_episodes=1, batch_size=1, episode_length=1)
+        check_at_least(self.diagnose, "diagnose.", pairs=1)
+        check_at_least(self.probe, "probe.", episodes=1)
+        check_at_least(self, "", jobs=1)
+        for flag in self.train.extra_flags.split():
+            if not flag.startswith("--") or "=" not in flag:
+                raise ValueError(
+                    f"--train.extra_flags holds {flag!r}; allowed: lerobot-train flags --key=value separated by spaces"
+                )
+        from lerobot_condground.evaluation.sweep import parse_conditions
+
+        parse_conditions(self.eval.conditions)
+        if self.eval.counterbalanced.strip():
+            parse_conditions(self.eval.counterbalanced)
+
+    def task_list(self) -> list[str]:
+        return _split(self.tasks, "--tasks", TASKS)
+
+    def variant_list(self) -> list[str]:
+        return _split(self.train.variants, "--train.variants", VARIANT_ORDER)
+
+    def policy_flags(self) -> list[str]:
+        return [*PRESETS[self.preset]["policy"], *self.train.extra_flags.split()]
+
+    def pinned(self) -> dict:
+        """The settings that shape results: a rerun on the same directory must keep them. Which tasks and
+        variants run may grow (each has its own stages); how many stages run side by side may change."""
+        settings = asdict(self)
+        for key in ("tasks", "jobs", "dry_run", "progress", "output_dir"):
+            settings.pop(key)
+        settings["train"].pop("variants")
+        settings["policy_flags"] = self.policy_flags()
+        return settings
+
+
+def _split(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    for item in items:
+        if item not in allowed:
+            raise ValueError(f"{flag} holds {item!r}; allowed: {', '.join(allowed)}, separated by commas")
+    if not items or len(set(items)) != len(items):
+        raise ValueError(
+            f"{flag}={text!r} is not allowed; allowed: each of {', '.join(allowed)} at most once"
+        )
+    return items
+
+
+@dataclass
+class Stage:
+    name: str  # e.g. train/PickPlaceRandomBin-v0/full/seed0; also its directory under --output_dir
+    kind: str  # record, train, sweep, sweep_counterbalanced, diagnose, probe, report
+    after: tuple[str, ...]  # stages whose outputs it reads
+    estimate_s: float  # on one job's share of this machine
+    work: str  # what it does, in counts
+    rollouts: int = 0  # sweeps: how many
+
+    @property
+    def key(self) -> str:
+        return self.name.replace("/", "__")
+
+
+def checkpoint_dir(cfg: ReproduceConfig, task: str, variant: str, seed: int) -> Path:
+    """The training run's last checkpoint (LeRobot names step directories with at least 6 digits)."""
+    steps = cfg.train.steps
+    step = f"{steps:0{max(6, len(str(steps)))}d}"
+    return (
+        Path(cfg.output_dir)
+        / "train"
+        / task
+        / variant
+        / f"seed{seed}"
+        / "checkpoints"
+        / step
+        / "pretrained_model"
+    )
+
+
+def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
+    """Every stage in the order it should run: Task 2 (the paper's harder task) first, the paper's three
+    methods of each task before the variants it does not report (augmentation_attention)."""
+    from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
+
+    cores = cores or os.cpu_count() or 1
+    share = max(1, cores // cfg.jobs)
+    scale = cfg.preset
+    tasks, variants = cfg.task_list(), cfg.variant_list()
+    pairs = sorted(
+        ((t, v) for t in tasks for v in variants),
+        key=lambda tv: (tv[1] not in METHODS, tasks.index(tv[0]), variants.index(tv[1])),
+    )
+    rollouts_s = 60.0 / (ROLLOUTS_PER_CORE_MIN[scale] * share)
+    conditions = _conditions(cfg.eval.conditions)
+    counterbalanced = _conditions(cfg.eval.counterbalanced) if cfg.eval.counterbalanced.strip() else []
+    per_condition = cfg.eval.seeds * cfg.eval.n_episodes
+    stages: list[Stage] = []
+    recorded: set[str] = set()
+    for task, variant in pairs:
+        if task not in recorded:
+            recorded.add(task)
+            stages.append(
+                Stage(
+                    f"datasets/{task}",
+                    "record",
+                    (),
+                    cfg.record.episodes * RECORD_S_PER_EPISODE * 2 / min(cores, 2),
+                    f"{cfg.record.episodes} clean demonstrations",
+                )
+            )
+        samples = cfg.train.steps * cfg.train.batch_size
+        rate = TRAIN_SAMPLES_PER_CORE_S[scale][variant] * share**THREAD_SCALING
+        trains = [f"train/{task}/{variant}/seed{s}" for s in range(cfg.train.seeds)]
+        stages += [
+            Stage(
+                name,
+                "train",
+                (f"datasets/{task}",),
+                samples / rate,
+                f"{cfg.train.steps} steps ({samples} samples)",
+            )
+            for name in trains
+        ]
+        sweep = f"sweep/{task}/{variant}"
+        n = cfg.train.seeds * len(conditions) * per_condition
+        stages.append(Stage(sweep, "sweep", tuple(trains), n * rollouts_s, f"{n} rollouts", n))
+        if counterbalanced:
+            n = cfg.train.seeds * len(counterbalanced) * per_condition
+            stages.append(
+                Stage(
+                    f"sweep_counterbalanced/{task}/{variant}",
+                    "sweep_counterbalanced",
+                    tuple(trains),
+                    n * rollouts_s,
+                    f"{n} rollouts",
+                    n,
+                )
+            )
+        for seed, train in enumerate(trains):
+            if task == "PickPlaceRandomBin-v0" and f"act_modified/{variant}" in TABLE2_COLUMN:
+                stages.append(
+                    Stage(
+                        f"diagnose/{task}/{variant}/seed{seed}",
+                        "diagnose",
+                        (train, sweep),
+                        cfg.diagnose.pairs * DIAGNOSE_S_PER_PAIR,
+                        f"{cfg.diagnose.pairs} matched pairs",
+                    )
+                )
+            if VARIANTS[variant]["use_prompts"]:
+                stages.append(
+                    Stage(
+                        f"probe/{task}/{variant}/seed{seed}",
+                        "probe",
+                        (train,),
+                        2 * cfg.probe.episodes * rollouts_s,
+                        f"{cfg.probe.episodes} layouts x 2 prompts",
+                    )
+                )
+    stages.append(
+        Stage(
+            "report",
+            "report",
+            tuple(s.name for s in stages if s.kind not in ("record", "train")),
+            REPORT_S,
+            "HTML + Markdown",
+        )
+    )
+    return stages
+
+
+def _conditions(text: str) -> list[str]:
+    from lerobot_condground.evaluation.sweep import parse_conditions
+
+    return parse_conditions(text)
+
+
+def makespan(stages: list[Stage], jobs: int, done: set[str] = frozenset()) -> float:
+    """Estimated wall-clock seconds to run what is not done, `jobs` stages at a time, in plan order as soon as
+    what they read is done (the way the runner schedules them)."""
+    todo = [s for s in stages if s.name not in done]
+    finished = set(done)
+    running: list[tuple[float, str]] = []
+    now = 0.0
+    while todo or running:
+        ready = [s for s in todo if all(a in finished for a in s.after)]
+        while ready and len(running) < jobs:
+            stage = ready.pop(0)
+            todo.remove(stage)
+            heapq.heappush(running, (now + stage.estimate_s, stage.name))
+        if not running:  # what is left reads a stage that is not planned
+            break
+        now, name = heapq.heappop(running)
+        finished.add(name)
+    return now

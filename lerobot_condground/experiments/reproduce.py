@@ -1,0 +1,256 @@
+"""`condground reproduce`: run the plan's stages, side by side where they may, resumable at every stage.
+
+Each stage is a subprocess (the stock `lerobot-train`, `condground record|sweep|diagnose|probe|report`)
+writing into `<output_dir>/<stage>` with its output in `<output_dir>/logs/<stage>.log`. A stage is done
+when `<output_dir>/stages/<stage>.json` is there; it is written only after the command succeeded, so a
+killed run repeats at most the stages in flight, and those resume themselves: a recording from its last
+episode, a training from its last checkpoint, a sweep from its finished units; diagnose, probe and report
+rewrite their own files. `reproduce.json` pins the settings that shape results: another setting on the same
+directory is refused before any work starts.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from lerobot_condground.core.files import read_json_object
+from lerobot_condground.core.provenance import versions
+from lerobot_condground.experiments.plan import ReproduceConfig, Stage, checkpoint_dir, makespan, plan
+
+MANIFEST = "reproduce.json"
+LOG_STEP = re.compile(r"\bstep:(\d+(?:\.\d+)?)([KMB]?)\b")
+
+
+def _script(name: str) -> str:
+    """A console script installed beside this interpreter."""
+    return str(Path(sys.executable).parent / name)
+
+
+def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
+    """The command line of one stage; `share` is the cores it may use."""
+    out = Path(cfg.output_dir)
+    here = out / stage.name
+    parts = stage.name.split("/")
+    if stage.kind == "record":
+        return [
+            _script("condground"), "record", f"--env.task={parts[1]}", "--env.condition=clean",
+            f"--env.observation_height={cfg.record.observation_height}",
+            f"--env.observation_width={cfg.record.observation_width}",
+            f"--dataset.repo_id=local/{parts[1]}", f"--dataset.root={here}",
+            f"--dataset.num_episodes={cfg.record.episodes}", "--progress=false",
+        ]  # fmt: skip
+    if stage.kind == "train":
+        task, variant, seed = parts[1], parts[2], int(parts[3].removeprefix("seed"))
+        last = here / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+        if last.is_file():  # LeRobot's own resume: model, optimizer, scheduler, step and data order
+            return [_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
+        device = [f"--policy.device={cfg.train.device}"] if cfg.train.device else []
+        return [
+            _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device,
+            "--policy.push_to_hub=false", *cfg.policy_flags(), f"--dataset.repo_id=local/{task}",
+            f"--dataset.root={out / 'datasets' / task}", f"--batch_size={cfg.train.batch_size}",
+            f"--steps={cfg.train.steps}", f"--save_freq={cfg.train.save_freq}",
+            f"--log_freq={max(1, min(100, cfg.train.steps // 20))}", f"--num_workers={cfg.train.num_workers}",
+            "--wandb.enable=false", f"--seed={seed}", f"--output_dir={here}",
+        ]  # fmt: skip
+    if stage.kind in ("sweep", "sweep_counterbalanced"):
+        task, variant = parts[1], parts[2]
+        checkpoints = [checkpoint_dir(cfg, task, variant, s) for s in range(cfg.train.seeds)]
+        counterbalanced = stage.kind == "sweep_counterbalanced"
+        return [
+            _script("condground"), "sweep", f"--policy.paths={','.join(map(str, checkpoints))}",
+            f"--env.task={task}", f"--env.counterbalanced={str(counterbalanced).lower()}",
+            f"--env.episode_length={cfg.eval.episode_length}",
+            f"--sweep.conditions={cfg.eval.counterbalanced if counterbalanced else cfg.eval.conditions}",
+            f"--eval.seeds={cfg.eval.seeds}", f"--eval.n_episodes={cfg.eval.n_episodes}",
+            f"--eval.batch_size={cfg.eval.batch_size}", f"--workers={share}", f"--output_dir={here}",
+            "--progress=false",
+        ]  # fmt: skip
+    if stage.kind == "diagnose":
+        task, variant, seed = parts[1], parts[2], int(parts[3].removeprefix("seed"))
+        return [
+            _script("condground"), "diagnose", f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}",
+            f"--env.task={task}", f"--diagnose.pairs={cfg.diagnose.pairs}",
+            f"--sweep_dir={out / 'sweep' / task / variant}", f"--output_dir={here}", "--progress=false",
+        ]  # fmt: skip
+    if stage.kind == "probe":
+        task, variant, seed = parts[1], parts[2], int(parts[3].removeprefix("seed"))
+        return [
+            _script("condground"), "probe", f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}",
+            f"--env.task={task}", f"--env.episode_length={cfg.eval.episode_length}",
+            f"--probe.episodes={cfg.probe.episodes}", f"--workers={share}",
+            f"--output_dir={here}", "--progress=false",
+        ]  # fmt: skip
+    inputs = [f"--input_dir={out / name}" for name in stage.after]
+    return [
+        _script("condground"), "report", *inputs, f"--output={here / 'report.html'}",
+        f"--title=condground reproduce, preset {cfg.preset}: {', '.join(cfg.task_list())}",
+    ]  # fmt: skip
+
+
+def check_same_settings(cfg: ReproduceConfig) -> None:
+    """Refuses a directory that holds a reproduction with other settings; pins the settings of a new one."""
+    out = Path(cfg.output_dir)
+    path = out / MANIFEST
+    settings = cfg.pinned()
+    if path.exists():
+        previous = read_json_object(path, "Reproduction manifest").get("settings", {})
+        diffs = _differences(previous, settings)
+        if diffs:
+            raise ValueError(
+                f"{out} holds a reproduction with other settings ({'; '.join(diffs)}); rerun with the same "
+                "flags to continue it, or choose a new --output_dir"
+            )
+    elif out.exists() and any(out.iterdir()):
+        raise FileExistsError(
+            f"--output_dir={out} is not empty and holds no {MANIFEST}; allowed: a new or empty directory, "
+            "or one an earlier `condground reproduce` wrote"
+        )
+
+
+def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:
+    diffs = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            diffs += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            diffs.append(f"{prefix}{key}: {a!r} -> {b!r}")
+    return diffs
+
+
+def _marker(cfg: ReproduceConfig, stage: Stage) -> Path:
+    return Path(cfg.output_dir) / "stages" / f"{stage.key}.json"
+
+
+def _log(cfg: ReproduceConfig, stage: Stage) -> Path:
+    return Path(cfg.output_dir) / "logs" / f"{stage.key}.log"
+
+
+def _fraction(cfg: ReproduceConfig, stage: Stage) -> float:
+    """How far a running stage is, from what it has written so far (training: its log; sweeps: their units)."""
+    if stage.kind == "train":
+        try:
+            text = _log(cfg, stage).read_bytes()[-4096:].decode(errors="replace")
+        except OSError:
+            return 0.0
+        steps = LOG_STEP.findall(text)
+        if not steps:
+            return 0.0
+        value, unit = steps[-1]
+        return min(1.0, float(value) * {"": 1, "K": 1e3, "M": 1e6, "B": 1e9}[unit] / cfg.train.steps)
+    if stage.kind.startswith("sweep"):
+        parts = Path(cfg.output_dir) / stage.name / "parts"
+        done = sum(1 for _ in parts.rglob("*.parquet")) * cfg.eval.batch_size if parts.exists() else 0
+        return min(1.0, done / max(stage.rollouts, 1))
+    return 0.0
+
+
+def _prepare(cfg: ReproduceConfig, stage: Stage) -> None:
+    """A training killed before its first checkpoint left a directory lerobot-train refuses to reuse: it is
+    this stage's own, so it goes. Anything else resumes in place."""
+    here = Path(cfg.output_dir) / stage.name
+    if stage.kind == "train" and here.exists() and not (here / "checkpoints" / "last").exists():
+        shutil.rmtree(here)
+
+
+def describe(cfg: ReproduceConfig, stages: list[Stage], done: set[str], cores: int) -> str:
+    lines = [
+        f"condground reproduce, preset {cfg.preset}: {len(stages)} stages ({len(done)} done) in {cfg.output_dir}",
+        f"{'stage':<66} {'work':<30} estimate",
+    ]
+    for s in stages:
+        state = "done" if s.name in done else _hours(s.estimate_s)
+        lines.append(f"{s.name:<66} {s.work:<30} {state}")
+    left = makespan(stages, cfg.jobs, done)
+    lines.append(
+        f"estimated time left: {_hours(left)} with {cfg.jobs} stage(s) side by side on {cores} core(s) "
+        "(rates measured on the 2-core development machine)"
+    )
+    return "\n".join(lines)
+
+
+def _hours(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
+
+
+def run(cfg: ReproduceConfig) -> Path:
+    cores = os.cpu_count() or 1
+    stages = plan(cfg, cores)
+    check_same_settings(cfg)
+    done = {s.name for s in stages if _marker(cfg, s).exists()}
+    print(describe(cfg, stages, done, cores), flush=True)
+    if cfg.dry_run:
+        return Path(cfg.output_dir)
+    out = Path(cfg.output_dir)
+    for sub in ("stages", "logs"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    if not (out / MANIFEST).exists():
+        (out / MANIFEST).write_text(json.dumps({"settings": cfg.pinned(), "versions": versions()}, indent=2))
+
+    share = max(1, cores // cfg.jobs)
+    env = {
+        **os.environ,
+        "WANDB_MODE": "disabled",
+        "OMP_NUM_THREADS": str(share),
+        "MKL_NUM_THREADS": str(share),
+    }
+    todo = [s for s in stages if s.name not in done]
+    running: dict[str, tuple[Stage, subprocess.Popen, float]] = {}
+    total = sum(s.estimate_s for s in stages)
+    bar = tqdm(total=round(total), unit="s", desc="reproduce", disable=not cfg.progress, smoothing=0.05,
+               bar_format="{desc}: {percentage:3.0f}% |{bar}| {elapsed} elapsed, ETA {remaining} {postfix}")  # fmt: skip
+    finished = sum(s.estimate_s for s in stages if s.name in done)
+    try:
+        while todo or running:
+            for name, (stage, proc, started) in list(running.items()):
+                if proc.poll() is None:
+                    continue
+                del running[name]
+                if proc.returncode != 0:
+                    tail = _log(cfg, stage).read_text(errors="replace").splitlines()[-40:]
+                    raise RuntimeError(
+                        f"stage {name} failed ({proc.returncode}); log {_log(cfg, stage)}:\n"
+                        + "\n".join(tail)
+                    )
+                _marker(cfg, stage).write_text(
+                    json.dumps({"command": proc.args, "seconds": round(time.time() - started, 1)}, indent=1)
+                )
+                done.add(name)
+                finished += stage.estimate_s
+                bar.write(f"done: {name} ({_hours(time.time() - started)})")
+            for stage in [s for s in todo if all(a in done for a in s.after)]:
+                if len(running) >= cfg.jobs:
+                    break
+                todo.remove(stage)
+                _prepare(cfg, stage)
+                args = command(cfg, stage, share)
+                bar.write(f"start: {stage.name}  (log: {_log(cfg, stage)})")
+                with _log(cfg, stage).open("a") as log:
+                    log.write(f"$ {' '.join(args)}\n")
+                    log.flush()
+                    proc = subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT)
+                running[stage.name] = (stage, proc, time.time())
+            if not running and todo:
+                raise RuntimeError(f"stages {[s.name for s in todo]} read stages that are not planned")
+            bar.n = round(finished + sum(s.estimate_s * _fraction(cfg, s) for s, _, _ in running.values()))
+            bar.set_postfix_str(", ".join(running), refresh=True)
+            time.sleep(1.0)
+    finally:
+        for _, proc, _ in running.values():
+            proc.terminate()
+        for _, proc, _ in running.values():
+            proc.wait()
+        bar.close()
+    report = out / "report" / "report.html"
+    print(f"reproduce: all {len(stages)} stages done; report {report}", flush=True)
+    return report

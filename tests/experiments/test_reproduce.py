@@ -1,0 +1,132 @@
+"""`condground reproduce`: the plan, its refusals, and a toy-size run killed mid-stage and resumed."""
+
+import os
+import signal
+import subprocess
+import time
+
+import pandas as pd
+import pytest
+
+from helpers import BIN, read_json, run_cli
+from lerobot_condground.cli import main
+
+# Every kind of stage once (Task 2 and `full`: diagnose and probe run), each as small as it runs.
+TOY = [
+    "--tasks=PickPlaceRandomBin-v0",
+    "--train.variants=full",
+    "--record.episodes=2",
+    "--train.steps=40",
+    "--train.save_freq=10",
+    "--train.batch_size=2",
+    "--eval.conditions=full_mixed",
+    "--eval.counterbalanced=full_mixed",
+    "--eval.seeds=1",
+    "--eval.n_episodes=2",
+    "--eval.batch_size=2",
+    "--eval.episode_length=10",
+    "--diagnose.pairs=1",
+    "--probe.episodes=1",
+    "--progress=false",
+]
+
+
+def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
+    out = tmp_path / "plan"
+    assert main(["reproduce", "--preset=cpu", f"--output_dir={out}", "--dry_run=true"]) == 0
+    text = capsys.readouterr().out
+    assert "preset cpu: 32 stages (0 done)" in text
+    # Task 2 first, the paper's three methods before augmentation_attention
+    trains = [line.split()[0] for line in text.splitlines() if line.startswith("train/")]
+    assert trains[:3] == [
+        f"train/PickPlaceRandomBin-v0/{v}/seed0" for v in ("standard", "full", "augmentation")
+    ]
+    assert trains[-1] == "train/PickPlaceFixedBin-v0/augmentation_attention/seed0"
+    assert "sweep/PickPlaceRandomBin-v0/full" in text and "500 rollouts" in text
+    assert "diagnose/PickPlaceRandomBin-v0/augmentation/seed0" in text
+    assert "probe/PickPlaceFixedBin-v0/full/seed0" in text and "diagnose/PickPlaceFixedBin" not in text
+    assert "estimated time left:" in text
+    assert not out.exists()
+
+    assert (
+        main(["reproduce", "--preset=paper", f"--output_dir={out}", "--dry_run=true", "--train.steps=5"]) == 0
+    )
+    text = capsys.readouterr().out
+    assert "12000 rollouts" in text  # 3 training seeds x 20 conditions x 4 x 50
+    assert "train/PickPlaceRandomBin-v0/standard/seed2" in text and "5 steps" in text
+
+
+@pytest.mark.parametrize(
+    "flag, message",
+    [
+        ("--preset=gpu", "--preset='gpu' is not allowed; allowed: cpu, paper"),
+        ("--train.variants=standard,bogus", "--train.variants holds 'bogus'"),
+        ("--tasks=PickPlaceRandomBin-v0,PickPlaceRandomBin-v0", "each of"),
+        ("--eval.conditions=clean,nope", "Unknown condition 'nope'"),
+        ("--train.steps=0", "--train.steps=0 is not allowed"),
+        ("--train.extra_flags=dim_model=3", "--train.extra_flags holds 'dim_model=3'"),
+        ("--jobs=0", "--jobs=0 is not allowed"),
+    ],
+)
+def test_bad_input_is_one_error_before_work(tmp_path, capsys, flag, message):
+    out = tmp_path / "run"
+    assert main(["reproduce", f"--output_dir={out}", flag]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_a_directory_it_did_not_write_is_refused(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("mine")
+    assert main(["reproduce", f"--output_dir={tmp_path}", *TOY]) == 2
+    assert "holds no reproduce.json" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def _commands(out, key: str) -> list[str]:
+    """The command lines a stage's log shows, one per time the stage was started."""
+    return [line for line in (out / "logs" / f"{key}.log").read_text().splitlines() if line.startswith("$ ")]
+
+
+def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
+    out = tmp_path / "repro"
+    env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
+    args = [str(BIN / "condground"), "reproduce", f"--output_dir={out}", "--jobs=2", *TOY]
+    # Killed hard (the whole process group, as a lost session would) once the training saved a checkpoint.
+    first = subprocess.Popen(
+        args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    train = out / "train" / "PickPlaceRandomBin-v0" / "full" / "seed0"
+    deadline = time.time() + 400
+    while not (train / "checkpoints" / "last").exists():
+        assert first.poll() is None, first.stdout.read().decode()
+        assert time.time() < deadline, "the training saved no checkpoint"
+        time.sleep(0.1)
+    os.killpg(first.pid, signal.SIGKILL)
+    first.wait()
+    assert not (out / "stages" / "train__PickPlaceRandomBin-v0__full__seed0.json").exists()
+    recorded = (out / "stages" / "datasets__PickPlaceRandomBin-v0.json").stat().st_mtime_ns
+
+    second = run_cli("condground", "reproduce", f"--output_dir={out}", "--jobs=2", *TOY).stdout
+    assert "7 stages (1 done)" in second
+    assert "start: datasets/" not in second and "start: train/PickPlaceRandomBin-v0/full/seed0" in second
+    assert (out / "stages" / "datasets__PickPlaceRandomBin-v0.json").stat().st_mtime_ns == recorded
+    assert len(_commands(out, "datasets__PickPlaceRandomBin-v0")) == 1
+    commands = _commands(out, "train__PickPlaceRandomBin-v0__full__seed0")
+    assert len(commands) == 2 and "--resume=true" in commands[1]  # went on from its checkpoint
+    assert (train / "checkpoints" / "000040" / "pretrained_model" / "model.safetensors").is_file()
+    results = pd.read_parquet(out / "sweep" / "PickPlaceRandomBin-v0" / "full" / "results.parquet")
+    assert len(results) == 2 and set(results["condition"]) == {"full_mixed"}
+    assert (
+        read_json(out / "probe" / "PickPlaceRandomBin-v0" / "full" / "seed0" / "probe.json")["episodes"] == 1
+    )
+    assert (out / "diagnose" / "PickPlaceRandomBin-v0" / "full" / "seed0" / "diagnostics.json").is_file()
+    report = (out / "report" / "report.md").read_text()
+    assert "full_mixed (counterbalanced)" in report and "## Table II" in report
+
+    third = run_cli("condground", "reproduce", f"--output_dir={out}", *TOY).stdout
+    assert "7 stages (7 done)" in third and "start:" not in third  # --jobs may change; nothing reruns
+
+    changed = run_cli("condground", "reproduce", f"--output_dir={out}", *TOY, "--train.steps=50", check=False)
+    assert changed.returncode == 2
+    assert "other settings (train.steps: 40 -> 50)" in changed.stderr
