@@ -132,6 +132,12 @@ def _marker(cfg: ReproduceConfig, stage: Stage) -> Path:
     return Path(cfg.output_dir) / "stages" / f"{stage.key}.json"
 
 
+def _is_done(cfg: ReproduceConfig, stage: Stage) -> bool:
+    """Its marker is there and it read what it reads now: the report is rebuilt when stages were added."""
+    path = _marker(cfg, stage)
+    return path.exists() and read_json_object(path, "Stage marker").get("after") == list(stage.after)
+
+
 def _log(cfg: ReproduceConfig, stage: Stage) -> Path:
     return Path(cfg.output_dir) / "logs" / f"{stage.key}.log"
 
@@ -187,7 +193,7 @@ def run(cfg: ReproduceConfig) -> Path:
     cores = os.cpu_count() or 1
     stages = plan(cfg, cores)
     check_same_settings(cfg)
-    done = {s.name for s in stages if _marker(cfg, s).exists()}
+    done = {s.name for s in stages if _is_done(cfg, s)}
     print(describe(cfg, stages, done, cores), flush=True)
     if cfg.dry_run:
         return Path(cfg.output_dir)
@@ -222,8 +228,11 @@ def run(cfg: ReproduceConfig) -> Path:
                         f"stage {name} failed ({proc.returncode}); log {_log(cfg, stage)}:\n"
                         + "\n".join(tail)
                     )
+                seconds = round(time.time() - started, 1)
                 _marker(cfg, stage).write_text(
-                    json.dumps({"command": proc.args, "seconds": round(time.time() - started, 1)}, indent=1)
+                    json.dumps(
+                        {"command": proc.args, "after": list(stage.after), "seconds": seconds}, indent=1
+                    )
                 )
                 done.add(name)
                 finished += stage.estimate_s

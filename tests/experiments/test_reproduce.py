@@ -1,5 +1,6 @@
 """`condground reproduce`: the plan, its refusals, and a toy-size run killed mid-stage and resumed."""
 
+import json
 import os
 import signal
 import subprocess
@@ -130,3 +131,21 @@ def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
     changed = run_cli("condground", "reproduce", f"--output_dir={out}", *TOY, "--train.steps=50", check=False)
     assert changed.returncode == 2
     assert "other settings (train.steps: 40 -> 50)" in changed.stderr
+
+
+def test_the_report_is_rebuilt_when_the_plan_grew(tmp_path):
+    from lerobot_condground.experiments.plan import ReproduceConfig, plan
+    from lerobot_condground.experiments.reproduce import _is_done, _marker
+
+    def report_stage(variants: str):
+        cfg = ReproduceConfig(output_dir=str(tmp_path), tasks="PickPlaceFixedBin-v0")
+        cfg.train.variants = variants
+        return cfg, plan(cfg)[-1]
+
+    cfg, report = report_stage("standard")
+    marker = _marker(cfg, report)
+    marker.parent.mkdir(parents=True)
+    marker.write_text(json.dumps({"command": [], "after": list(report.after)}))
+    assert _is_done(cfg, report)
+    cfg, report = report_stage("standard,full")  # --train.variants grew: more sweeps to report
+    assert report.name == "report" and not _is_done(cfg, report)
