@@ -24,6 +24,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 
 def run_name(run: str) -> str:
+    """As learning_curve.sh names a run: TASK:VARIANT[:FLAGS]@NAME -> TASK_VARIANT_NAME, else the spec."""
+    if "@" in run:
+        spec, name = run.split("@", 1)
+        run = "_".join([*spec.split(":")[:2], name])
     return re.sub(r"[:,=./]", "_", run)
 
 
@@ -106,7 +110,7 @@ def main() -> None:
             success.to_csv(args.csv_dir / f"{stem}.csv", index=False, float_format="%.4f")
             loss.to_csv(args.csv_dir / f"{stem}_loss.csv", index=False)
             print(run, "\n", success.to_string(index=False))
-            label = run.split(":", 1)[1] + args.suffix
+            label = run_name(run + args.suffix).removeprefix(f"{task}_")
             ax_loss.plot(loss.steps, loss.l1_loss, label=label)
             ax_success.errorbar(
                 success.minutes,

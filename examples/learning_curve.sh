@@ -8,8 +8,8 @@
 #
 #   RUNS="PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard" MINUTES=60 bash examples/learning_curve.sh
 #
-# A run is TASK:VARIANT[:FLAG,FLAG...] (extra lerobot-train flags, comma-separated, applied after the
-# configuration's). A run is named by its spec. MINUTES is each run's total training time: rerunning skips
+# A run is TASK:VARIANT[:FLAG,FLAG...][@NAME] (extra lerobot-train flags, comma-separated, applied after
+# the configuration's), named <task>_<variant>_<NAME>, or by its whole spec without @NAME. MINUTES is each run's total training time: rerunning skips
 # finished evaluations and runs that had their MINUTES, and resumes the others from their last checkpoint.
 # DEMOS clean demonstrations per task (default 100); other counts record into $OUT/data<DEMOS> (a rerun
 # with more resumes the recording) and name their runs <task>_<variant>[_<flags>]_demos<DEMOS>.
@@ -29,7 +29,12 @@ SIZE=$(python -c "from lerobot_condground.core.training import CPU_FRAME_SIZE as
 
 DATA=$OUT/data; SUFFIX=
 [ "$DEMOS" = 100 ] || { DATA=$OUT/data$DEMOS; SUFFIX=_demos$DEMOS; }
-name() { echo "$1$SUFFIX" | tr ':,=./' '_____'; }
+# A run named NAME (TASK:VARIANT[:FLAGS]@NAME) is <task>_<variant>_<NAME>; otherwise its spec names it.
+name() {
+  local spec=${1%%@*} tail=
+  [ "$spec" = "$1" ] || { spec=${spec%%:*}:$(cut -d: -f2 <<< "$spec"); tail=_${1#*@}; }
+  echo "$spec$tail$SUFFIX" | tr ':,=./' '_____'
+}
 
 episodes() { python -c "import json, sys; print(json.load(open(sys.argv[1]))['total_episodes'])" "$1" 2>/dev/null; }
 for task in $(for run in $RUNS; do echo "${run%%:*}"; done | sort -u); do
@@ -41,7 +46,7 @@ done
 trained_s() { awk 'NF == 2 {t += $2 - $1} END {print t + 0}' "$1.start" 2>/dev/null || echo 0; }
 
 for run in $RUNS; do
-  IFS=: read -r task variant extra <<< "$run"
+  IFS=: read -r task variant extra <<< "${run%%@*}"
   dir="$OUT/train/$(name "$run")"
   left=$((MINUTES * 60 - $(trained_s "$dir")))
   [ "$left" -gt 60 ] || continue
