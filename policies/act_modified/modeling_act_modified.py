@@ -20,6 +20,7 @@ Design choices:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -273,7 +274,9 @@ class ACTModified(ACT):
 
     def _encode_prompts(self, crops: Tensor) -> Tensor:
         crops = (crops - self.prompt_mean) / self.prompt_std
-        return self.encoder_img_feat_input_proj(self.backbone(crops)["feature_map"]).mean(dim=(2, 3))
+        with _running_batch_norm(self.backbone):
+            features = self.backbone(crops)["feature_map"]
+        return self.encoder_img_feat_input_proj(features).mean(dim=(2, 3))
 
     def _episode_prompt_features(self, crops: list[Tensor]) -> Tensor:
         """(object, receptacle) features at inference. The crops stay the same for a whole episode, so
@@ -288,6 +291,24 @@ class ACTModified(ACT):
         if mode:  # weights may change from here on; eval() is called before every prediction and keeps it
             self._prompt_cache = None
         return super().train(mode)
+
+
+@contextlib.contextmanager
+def _running_batch_norm(backbone: nn.Module):
+    """Prompt crops (close-ups of one entity) are another image distribution than the scene. Batch norm in
+    training mode would blend their statistics into the running ones the scene is normalized with at
+    inference, and normalize the crops by their own batch in training but by those running statistics at
+    inference: `full` at 7500 steps lost 22 % of its action accuracy between its two modes (L1 0.058 with
+    batch statistics, 0.071 with running ones; `standard`, which encodes no crops, 0.047 and 0.046). Crops
+    are encoded with the running statistics in training too, which leaves them to the scene."""
+    norms = [m for m in backbone.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm) and m.training]
+    for m in norms:
+        m.eval()
+    try:
+        yield
+    finally:
+        for m in norms:
+            m.train()
 
 
 def _refuse(message: str) -> None:

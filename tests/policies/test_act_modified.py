@@ -1,6 +1,8 @@
 """The act_modified policy on small CPU configs: variants, equality with stock ACT, the attention
 loss, prompt selection, checkpoints and warm starts."""
 
+import copy
+
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -19,6 +21,7 @@ from lerobot_condground.policies.act_modified.configuration_act_modified import 
 from lerobot_condground.policies.act_modified.modeling_act_modified import (
     ACTModifiedPolicy,
     attention_overlaps,
+    prompt_as_image,
 )
 
 H, W, B, CHUNK = 64, 96, 4, 5
@@ -150,6 +153,30 @@ def test_backbone_norm_trains_where_frozen_batch_norm_is_an_identity(norm, layer
     policy.eval()
     action = policy.select_action(observation(make_batch(1)))
     assert torch.isfinite(action).all()
+
+
+def test_prompt_crops_leave_the_scene_batch_norm_statistics_alone():
+    """Training encodes the crops with the running statistics, as inference does, and does not move them:
+    after a training forward they are what the scene images alone make of them."""
+    policy = make_policy(variant="full", backbone_norm="batchnorm", backbone_width=32)
+    policy.train()
+    model = policy.model
+    scene_only = copy.deepcopy(model.backbone)
+    batch = make_batch()
+    with torch.no_grad():
+        policy(batch)
+        scene_only(batch[CAMERA])
+    norms = [(a, b) for a, b in zip(model.backbone.modules(), scene_only.modules(), strict=True)]
+    norms = [(a, b) for a, b in norms if isinstance(a, torch.nn.BatchNorm2d)]
+    assert norms and all(
+        torch.allclose(a.running_mean, b.running_mean) and torch.allclose(a.running_var, b.running_var)
+        for a, b in norms
+    )
+    crops = prompt_as_image(make_batch(2)[OBS_PROMPT_OBJECT][:2])
+    in_training = model._encode_prompts(crops)
+    assert all(a.training for a, _ in norms)  # back in training mode for the scene
+    model.eval()
+    assert torch.allclose(in_training, model._encode_prompts(crops), atol=1e-6)
 
 
 @pytest.mark.parametrize("variant", ["standard", "full"])
