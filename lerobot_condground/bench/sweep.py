@@ -8,12 +8,11 @@ included, with one thread per worker so that the speed-up measures scaling over 
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from lerobot_condground.core.configs import check_at_least
+from lerobot_condground.core.configs import check_at_least, usable_cores
 
 
 @dataclass
@@ -60,7 +59,7 @@ def bench_sweep(checkpoint: Path, task: str, condition: str, cfg: SweepBenchConf
     from lerobot_condground.evaluation.results import read_table
     from lerobot_condground.evaluation.sweep import SweepConfig, SweepEvalConfig, SweepGridConfig, run_sweep
 
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     counts = [int(w) for w in cfg.workers.split(",")] if cfg.workers else sorted({1, cores})
     results: dict = {
         "sweep_episodes": cfg.episodes,

@@ -8,10 +8,20 @@ group's flags is given, so a `default_factory` holding other values would be sil
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 SEED_LIMIT = 2**63  # seeds are stored in int64 columns (results, provenance); numpy refuses negative ones
+
+
+def usable_cores() -> int:
+    """The cores this process may run on: `taskset`, cgroup cpusets and Slurm allocations narrow it below
+    `os.cpu_count()`, and sizing workers or threads by the machine's count oversubscribes the allocation."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
 
 
 def check_seed(flag: str, first: int, count: int = 1) -> None:

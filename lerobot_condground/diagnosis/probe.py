@@ -10,13 +10,12 @@ role. The paper reports 0-1 % competitor selection with the true prompt and 35-9
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_condground.core import paper
 from lerobot_condground.core.conditions import MATCHES, check_task
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed, usable_cores
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.evaluation.checkpoints import check_env_fits, describe_checkpoint, resolve_device
 from lerobot_condground.evaluation.launchers import execute
@@ -94,7 +93,7 @@ def run_probe(cfg: ProbeConfig) -> Path:
         rows.extend(result)
         bar.update(len(result))
 
-    workers = min(cfg.workers or os.cpu_count() or 1, len(jobs))
+    workers = min(cfg.workers or usable_cores(), len(jobs))
     try:
         execute(jobs, "local", workers, 1 if workers > 1 else None, None, on_done)
     finally:

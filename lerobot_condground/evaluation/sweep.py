@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -26,7 +25,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from lerobot_condground.core.conditions import PAPER_GRID, ConditionSpec, check_task
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed, usable_cores
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.evaluation.checkpoints import (
@@ -230,7 +229,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     }
     todo = [u for path, u in expected.items() if path not in frames]
 
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     workers = min(cfg.workers or cores, max(len(todo), 1))
     threads = cfg.threads_per_worker or (
         max(1, cores // workers) if workers > 1 or cfg.launcher == "ray" else None

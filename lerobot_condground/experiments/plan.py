@@ -9,12 +9,11 @@ costs there and scale with this machine's cores.
 from __future__ import annotations
 
 import heapq
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from lerobot_condground.core.conditions import TASKS, check_task
-from lerobot_condground.core.configs import check_at_least
+from lerobot_condground.core.configs import check_at_least, usable_cores
 from lerobot_condground.core.paper import METHODS, TABLE2_COLUMN
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
 
@@ -89,7 +88,9 @@ THREAD_SCALING = 0.55
 # evaluations at 96x128 (50 rollouts in about 3.5 minutes), the sweep benchmark at 240x320 (25.7 per minute
 # for 100-step episodes; up to 300 here).
 ROLLOUTS_PER_CORE_MIN = {"cpu": 14.0, "paper": 8.6}
-RECORD_S_PER_EPISODE = 4.0  # 100 clean episodes with labels and video in 395 s (2 cores)
+# 100 clean episodes with labels and video took 395 s on 2 cores; counted as one core's 7.9 s per episode,
+# spread over at most 2 (one recording process; the software renderer's threads are what use the second).
+RECORD_CORE_S_PER_EPISODE = 7.9
 DIAGNOSE_S_PER_PAIR = 15.0  # a guess: one pair took 40 s with the command's start-up (toy run, busy machine)
 REPORT_S = 60.0
 
@@ -161,6 +162,8 @@ class ReproduceConfig:
         if not self.output_dir.strip():
             raise ValueError("--output_dir is empty; allowed: a directory for every stage's outputs")
         preset = PRESETS[self.preset]
+        if self.jobs is None:  # the preset's count, but never more stages than cores this process may use
+            self.jobs = min(preset["jobs"], usable_cores())
         for key, value in preset.items():
             group, _, name = key.rpartition(".")
             owner = getattr(self, group) if group else self
@@ -180,17 +183,22 @@ class ReproduceConfig:
                 raise ValueError(
                     f"--train.extra_flags holds {flag!r}; allowed: lerobot-train flags --key=value separated by spaces"
                 )
-        from lerobot_condground.evaluation.sweep import parse_conditions
-
-        parse_conditions(self.eval.conditions)
-        if self.eval.counterbalanced.strip():
-            parse_conditions(self.eval.counterbalanced)
+        self.condition_lists()
 
     def task_list(self) -> list[str]:
         return _split(self.tasks, "--tasks", TASKS)
 
     def variant_list(self) -> list[str]:
         return _split(self.train.variants, "--train.variants", VARIANT_ORDER)
+
+    def condition_lists(self) -> tuple[list[str], list[str]]:
+        """The conditions swept plainly, and those swept counterbalanced (may be none)."""
+        from lerobot_condground.evaluation.sweep import parse_conditions
+
+        counterbalanced = self.eval.counterbalanced
+        return parse_conditions(self.eval.conditions), parse_conditions(
+            counterbalanced
+        ) if counterbalanced.strip() else []
 
     def policy_flags(self) -> list[str]:
         return [*PRESETS[self.preset]["policy"], *self.train.extra_flags.split()]
@@ -226,6 +234,9 @@ class Stage:
     estimate_s: float  # on one job's share of this machine
     work: str  # what it does, in counts
     rollouts: int = 0  # sweeps: how many
+    task: str = ""
+    variant: str = ""  # train, sweeps, diagnose, probe
+    seed: int = 0  # train, diagnose, probe: the training seed
 
     @property
     def key(self) -> str:
@@ -233,19 +244,12 @@ class Stage:
 
 
 def checkpoint_dir(cfg: ReproduceConfig, task: str, variant: str, seed: int) -> Path:
-    """The training run's last checkpoint (LeRobot names step directories with at least 6 digits)."""
-    steps = cfg.train.steps
-    step = f"{steps:0{max(6, len(str(steps)))}d}"
-    return (
-        Path(cfg.output_dir)
-        / "train"
-        / task
-        / variant
-        / f"seed{seed}"
-        / "checkpoints"
-        / step
-        / "pretrained_model"
-    )
+    """The training run's final checkpoint, where lerobot-train writes it."""
+    from lerobot.common.train_utils import get_step_checkpoint_dir
+    from lerobot.utils.constants import PRETRAINED_MODEL_DIR
+
+    run = Path(cfg.output_dir) / "train" / task / variant / f"seed{seed}"
+    return get_step_checkpoint_dir(run, cfg.train.steps, cfg.train.steps) / PRETRAINED_MODEL_DIR
 
 
 def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
@@ -253,7 +257,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
     methods of each task before the variants it does not report (augmentation_attention)."""
     from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
 
-    cores = cores or os.cpu_count() or 1
+    cores = cores or usable_cores()
     share = max(1, cores // cfg.jobs)
     scale = cfg.preset
     tasks, variants = cfg.task_list(), cfg.variant_list()
@@ -262,8 +266,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
         key=lambda tv: (tv[1] not in METHODS, tasks.index(tv[0]), variants.index(tv[1])),
     )
     rollouts_s = 60.0 / (ROLLOUTS_PER_CORE_MIN[scale] * share)
-    conditions = _conditions(cfg.eval.conditions)
-    counterbalanced = _conditions(cfg.eval.counterbalanced) if cfg.eval.counterbalanced.strip() else []
+    conditions, counterbalanced = cfg.condition_lists()
     per_condition = cfg.eval.seeds * cfg.eval.n_episodes
     stages: list[Stage] = []
     recorded: set[str] = set()
@@ -272,62 +275,57 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
             recorded.add(task)
             stages.append(
                 Stage(
-                    f"datasets/{task}",
-                    "record",
-                    (),
-                    cfg.record.episodes * RECORD_S_PER_EPISODE * 2 / min(cores, 2),
-                    f"{cfg.record.episodes} clean demonstrations",
+                    f"datasets/{task}", "record", (),
+                    cfg.record.episodes * RECORD_CORE_S_PER_EPISODE / min(cores, 2),
+                    f"{cfg.record.episodes} clean demonstrations", task=task,
                 )
-            )
+            )  # fmt: skip
         samples = cfg.train.steps * cfg.train.batch_size
         rate = TRAIN_SAMPLES_PER_CORE_S[scale][variant] * share**THREAD_SCALING
         trains = [f"train/{task}/{variant}/seed{s}" for s in range(cfg.train.seeds)]
         stages += [
             Stage(
-                name,
-                "train",
-                (f"datasets/{task}",),
-                samples / rate,
-                f"{cfg.train.steps} steps ({samples} samples)",
+                name, "train", (f"datasets/{task}",), samples / rate,
+                f"{cfg.train.steps} steps ({samples} samples)", task=task, variant=variant, seed=seed,
             )
-            for name in trains
-        ]
+            for seed, name in enumerate(trains)
+        ]  # fmt: skip
         sweep = f"sweep/{task}/{variant}"
-        n = cfg.train.seeds * len(conditions) * per_condition
-        stages.append(Stage(sweep, "sweep", tuple(trains), n * rollouts_s, f"{n} rollouts", n))
-        if counterbalanced:
-            n = cfg.train.seeds * len(counterbalanced) * per_condition
-            stages.append(
-                Stage(
-                    f"sweep_counterbalanced/{task}/{variant}",
-                    "sweep_counterbalanced",
-                    tuple(trains),
-                    n * rollouts_s,
-                    f"{n} rollouts",
-                    n,
+        for kind, name, conds in (
+            ("sweep", sweep, conditions),
+            ("sweep_counterbalanced", f"sweep_counterbalanced/{task}/{variant}", counterbalanced),
+        ):
+            if conds:
+                n = cfg.train.seeds * len(conds) * per_condition
+                stages.append(
+                    Stage(
+                        name,
+                        kind,
+                        tuple(trains),
+                        n * rollouts_s,
+                        f"{n} rollouts",
+                        n,
+                        task=task,
+                        variant=variant,
+                    )
                 )
-            )
         for seed, train in enumerate(trains):
             if task == "PickPlaceRandomBin-v0" and f"act_modified/{variant}" in TABLE2_COLUMN:
                 stages.append(
                     Stage(
-                        f"diagnose/{task}/{variant}/seed{seed}",
-                        "diagnose",
-                        (train, sweep),
-                        cfg.diagnose.pairs * DIAGNOSE_S_PER_PAIR,
-                        f"{cfg.diagnose.pairs} matched pairs",
+                        f"diagnose/{task}/{variant}/seed{seed}", "diagnose", (train, sweep),
+                        cfg.diagnose.pairs * DIAGNOSE_S_PER_PAIR, f"{cfg.diagnose.pairs} matched pairs",
+                        task=task, variant=variant, seed=seed,
                     )
-                )
+                )  # fmt: skip
             if VARIANTS[variant]["use_prompts"]:
                 stages.append(
                     Stage(
-                        f"probe/{task}/{variant}/seed{seed}",
-                        "probe",
-                        (train,),
-                        2 * cfg.probe.episodes * rollouts_s,
-                        f"{cfg.probe.episodes} layouts x 2 prompts",
+                        f"probe/{task}/{variant}/seed{seed}", "probe", (train,),
+                        2 * cfg.probe.episodes * rollouts_s, f"{cfg.probe.episodes} layouts x 2 prompts",
+                        task=task, variant=variant, seed=seed,
                     )
-                )
+                )  # fmt: skip
     stages.append(
         Stage(
             "report",
@@ -338,12 +336,6 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
         )
     )
     return stages
-
-
-def _conditions(text: str) -> list[str]:
-    from lerobot_condground.evaluation.sweep import parse_conditions
-
-    return parse_conditions(text)
 
 
 def makespan(stages: list[Stage], jobs: int, done: set[str] = frozenset()) -> float:

@@ -15,6 +15,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -22,6 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from lerobot_condground.core.configs import usable_cores
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import versions
 from lerobot_condground.experiments.plan import ReproduceConfig, Stage, checkpoint_dir, makespan, plan
@@ -35,21 +37,24 @@ def _script(name: str) -> str:
     return str(Path(sys.executable).parent / name)
 
 
+class StageFailed(RuntimeError):
+    """A stage's command exited with an error: its own log says why, not a traceback of this scheduler."""
+
+
 def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
     """The command line of one stage; `share` is the cores it may use."""
     out = Path(cfg.output_dir)
     here = out / stage.name
-    parts = stage.name.split("/")
+    task, variant, seed = stage.task, stage.variant, stage.seed
     if stage.kind == "record":
         return [
-            _script("condground"), "record", f"--env.task={parts[1]}", "--env.condition=clean",
+            _script("condground"), "record", f"--env.task={task}", "--env.condition=clean",
             f"--env.observation_height={cfg.record.observation_height}",
             f"--env.observation_width={cfg.record.observation_width}",
-            f"--dataset.repo_id=local/{parts[1]}", f"--dataset.root={here}",
+            f"--dataset.repo_id=local/{task}", f"--dataset.root={here}",
             f"--dataset.num_episodes={cfg.record.episodes}", "--progress=false",
         ]  # fmt: skip
     if stage.kind == "train":
-        task, variant, seed = parts[1], parts[2], int(parts[3].removeprefix("seed"))
         last = here / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if last.is_file():  # LeRobot's own resume: model, optimizer, scheduler, step and data order
             return [_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
@@ -63,7 +68,6 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
             "--wandb.enable=false", f"--seed={seed}", f"--output_dir={here}",
         ]  # fmt: skip
     if stage.kind in ("sweep", "sweep_counterbalanced"):
-        task, variant = parts[1], parts[2]
         checkpoints = [checkpoint_dir(cfg, task, variant, s) for s in range(cfg.train.seeds)]
         counterbalanced = stage.kind == "sweep_counterbalanced"
         return [
@@ -75,21 +79,26 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
             f"--eval.batch_size={cfg.eval.batch_size}", f"--workers={share}", f"--output_dir={here}",
             "--progress=false",
         ]  # fmt: skip
-    if stage.kind == "diagnose":
-        task, variant, seed = parts[1], parts[2], int(parts[3].removeprefix("seed"))
+    if stage.kind in ("diagnose", "probe"):
+        common = [f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}", f"--env.task={task}"]
+        if stage.kind == "diagnose":
+            specific = [
+                f"--diagnose.pairs={cfg.diagnose.pairs}",
+                f"--sweep_dir={out / 'sweep' / task / variant}",
+            ]
+        else:
+            specific = [
+                f"--env.episode_length={cfg.eval.episode_length}", f"--probe.episodes={cfg.probe.episodes}",
+                f"--workers={share}",
+            ]  # fmt: skip
         return [
-            _script("condground"), "diagnose", f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}",
-            f"--env.task={task}", f"--diagnose.pairs={cfg.diagnose.pairs}",
-            f"--sweep_dir={out / 'sweep' / task / variant}", f"--output_dir={here}", "--progress=false",
-        ]  # fmt: skip
-    if stage.kind == "probe":
-        task, variant, seed = parts[1], parts[2], int(parts[3].removeprefix("seed"))
-        return [
-            _script("condground"), "probe", f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}",
-            f"--env.task={task}", f"--env.episode_length={cfg.eval.episode_length}",
-            f"--probe.episodes={cfg.probe.episodes}", f"--workers={share}",
-            f"--output_dir={here}", "--progress=false",
-        ]  # fmt: skip
+            _script("condground"),
+            stage.kind,
+            *common,
+            *specific,
+            f"--output_dir={here}",
+            "--progress=false",
+        ]
     inputs = [f"--input_dir={out / name}" for name in stage.after]
     return [
         _script("condground"), "report", *inputs, f"--output={here / 'report.html'}",
@@ -190,7 +199,7 @@ def _hours(seconds: float) -> str:
 
 
 def run(cfg: ReproduceConfig) -> Path:
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     stages = plan(cfg, cores)
     check_same_settings(cfg)
     done = {s.name for s in stages if _is_done(cfg, s)}
@@ -216,6 +225,9 @@ def run(cfg: ReproduceConfig) -> Path:
     bar = tqdm(total=round(total), unit="s", desc="reproduce", disable=not cfg.progress, smoothing=0.05,
                bar_format="{desc}: {percentage:3.0f}% |{bar}| {elapsed} elapsed, ETA {remaining} {postfix}")  # fmt: skip
     finished = sum(s.estimate_s for s in stages if s.name in done)
+    # `kill` (SIGTERM) would end this process without its `finally`, orphaning the running stages, which a
+    # rerun would then race in the same directories.
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
         while todo or running:
             for name, (stage, proc, started) in list(running.items()):
@@ -224,9 +236,10 @@ def run(cfg: ReproduceConfig) -> Path:
                 del running[name]
                 if proc.returncode != 0:
                     tail = _log(cfg, stage).read_text(errors="replace").splitlines()[-40:]
-                    raise RuntimeError(
-                        f"stage {name} failed ({proc.returncode}); log {_log(cfg, stage)}:\n"
+                    raise StageFailed(
+                        f"stage {name} failed (exit {proc.returncode}); the end of its log {_log(cfg, stage)}:\n"
                         + "\n".join(tail)
+                        + "\nThe stages done are kept: the same command retries from this one."
                     )
                 seconds = round(time.time() - started, 1)
                 _marker(cfg, stage).write_text(

@@ -3,9 +3,15 @@
 condground reproduce --preset=cpu|paper --output_dir=DIR [--dry_run=true] [--train.steps=N ...]
 """
 
+import sys
+
 from lerobot_condground.experiments.plan import ReproduceConfig as Config
-from lerobot_condground.experiments.reproduce import run
+from lerobot_condground.experiments.reproduce import StageFailed, run
 
 
 def main(cfg: Config) -> None:
-    run(cfg)
+    try:
+        run(cfg)
+    except StageFailed as err:
+        print(f"condground reproduce: {err}", file=sys.stderr)
+        sys.exit(1)

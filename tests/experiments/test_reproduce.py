@@ -2,6 +2,7 @@
 
 import json
 import os
+import pathlib
 import signal
 import subprocess
 import time
@@ -131,6 +132,48 @@ def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
     changed = run_cli("condground", "reproduce", f"--output_dir={out}", *TOY, "--train.steps=50", check=False)
     assert changed.returncode == 2
     assert "other settings (train.steps: 40 -> 50)" in changed.stderr
+
+
+def _processes_naming(text: str) -> list[str]:
+    found = []
+    for cmdline in pathlib.Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            args = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # ended meanwhile
+            continue
+        if text in args:
+            found.append(args)
+    return found
+
+
+def test_a_terminated_run_takes_its_stages_with_it_and_a_failed_stage_is_one_message(tmp_path):
+    out = tmp_path / "repro"
+    flags = [
+        f"--output_dir={out}", "--tasks=PickPlaceRandomBin-v0", "--train.variants=standard",
+        "--record.episodes=1", "--train.extra_flags=--policy.no_such_field=1", "--progress=false",
+    ]  # fmt: skip
+    env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
+    first = subprocess.Popen(
+        [str(BIN / "condground"), "reproduce", *flags], env=env, stdout=subprocess.DEVNULL
+    )
+    log = out / "logs" / "datasets__PickPlaceRandomBin-v0.log"
+    deadline = time.time() + 120
+    while not log.exists():
+        assert first.poll() is None and time.time() < deadline
+        time.sleep(0.1)
+    first.terminate()  # `kill PID`: the recording it started must not outlive it
+    assert first.wait(timeout=60) == 128 + signal.SIGTERM
+    assert _processes_naming(str(out)) == []
+
+    second = run_cli("condground", "reproduce", *flags, check=False)
+    assert second.returncode == 1
+    first_line = second.stderr.splitlines()[0]
+    assert first_line.startswith(
+        "condground reproduce: stage train/PickPlaceRandomBin-v0/standard/seed0 failed"
+    )
+    assert "no_such_field" in second.stderr  # the end of the stage's own log says why
+    assert "Traceback" not in second.stderr.split("the end of its log")[0]
+    assert (out / "stages" / "datasets__PickPlaceRandomBin-v0.json").is_file()  # kept for the retry
 
 
 def test_the_report_is_rebuilt_when_the_plan_grew(tmp_path):
