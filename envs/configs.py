@@ -8,7 +8,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
-from lerobot_condground.core.conditions import ConditionSpec, check_task
+from lerobot_condground.core.conditions import ROUTING_TASK, ConditionSpec, check_env_task
 from lerobot_condground.core.labels import OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE
 
 from . import GYM_NAMESPACE
@@ -17,12 +17,15 @@ from . import GYM_NAMESPACE
 @EnvConfig.register_subclass("condground")
 @dataclass
 class CondGroundEnvConfig(EnvConfig):
-    """Pick-and-place with look-alike competitors.
+    """Pick-and-place with look-alike competitors, or instrument routing.
 
-    task: PickPlaceFixedBin-v0 (fixed receptacle) or PickPlaceRandomBin-v0 (both randomized).
+    task: PickPlaceFixedBin-v0 (fixed receptacle), PickPlaceRandomBin-v0 (both randomized), or
+        InstrumentRouting-v0 (the VLA case study's state-conditioned routing; always clean).
     condition: a name (clean, object_color_2, receptacle_shape_1, full_mixed, ...) or fields
         (object_color=2,receptacle_shape=1).
     counterbalanced: permute target and competitor colors and shapes across episodes.
+    subgoal (InstrumentRouting-v0): procedure, a subgoal (pick, inspect, route, place, home), or several
+        separated by commas, one drawn per episode.
     """
 
     task: str | None = "PickPlaceRandomBin-v0"
@@ -33,10 +36,13 @@ class CondGroundEnvConfig(EnvConfig):
     obs_type: str = "pixels_agent_pos"
     observation_height: int = 240
     observation_width: int = 320
-    wrist_camera: bool = False
+    # Render the wrist camera too; by default on for InstrumentRouting-v0, off for pick-and-place.
+    wrist_camera: bool | None = None
     # Send the positionless prompt crops of the target object and receptacle with every observation
     # (`observation.prompt.object` / `.receptacle`, as in recorded datasets); prompt policies need them.
-    prompts: bool = True
+    # Pick-and-place only; on by default there.
+    prompts: bool | None = None
+    subgoal: str = "procedure"
     render_mode: str = "rgb_array"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
@@ -54,8 +60,31 @@ class CondGroundEnvConfig(EnvConfig):
         # Bad names and sizes fail here, when the command line is parsed, before any work starts.
         from .pickplace_env import OBS_TYPES, check_resolution
 
-        check_task(self.task)
+        check_env_task(self.task)
         ConditionSpec.parse(self.condition)
+        routing = self.task == ROUTING_TASK
+        if routing:
+            from .routing_env import parse_episodes
+
+            parse_episodes(self.subgoal)
+            for flag, value, allowed in (
+                ("condition", self.condition, "clean"),
+                ("counterbalanced", self.counterbalanced, False),
+                ("prompts", self.prompts, None),
+            ):
+                if value != allowed and not (flag == "prompts" and value is False):
+                    raise ValueError(
+                        f"--env.{flag}={value!r} does not apply to {ROUTING_TASK} (no look-alike competitors); "
+                        f"leave it at its default"
+                    )
+        elif self.subgoal != "procedure":
+            raise ValueError(
+                f"--env.subgoal={self.subgoal!r} applies to {ROUTING_TASK} only; task is {self.task}"
+            )
+        if self.wrist_camera is None:
+            self.wrist_camera = routing
+        if self.prompts is None:
+            self.prompts = not routing
         check_resolution(self.observation_height, self.observation_width)
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
@@ -94,6 +123,17 @@ class CondGroundEnvConfig(EnvConfig):
 
     @property
     def gym_kwargs(self) -> dict:
+        if self.task == ROUTING_TASK:
+            return {
+                "subgoal": self.subgoal,
+                "obs_type": self.obs_type,
+                "observation_height": self.observation_height,
+                "observation_width": self.observation_width,
+                "wrist_camera": self.wrist_camera,
+                "render_mode": self.render_mode,
+                "fps": self.fps,
+                "max_episode_steps": self.episode_length,
+            }
         return {
             "condition": self.condition,
             "counterbalanced": self.counterbalanced,

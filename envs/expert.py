@@ -9,25 +9,21 @@ from __future__ import annotations
 
 import math
 
-import mujoco
 import numpy as np
 
 from . import robot
 from .assets import FLOOR_THICKNESS, OBJECT_HEIGHT, OBJECT_SHAPES
 from .layout import PREGRASP_MARGIN
+from .robot import InverseKinematics
 
 PHASES = ("approach", "descend", "grasp", "lift", "transport", "place", "release", "retreat", "done")
 PHASE_LABEL = {p: (0 if p in ("approach", "descend", "grasp") else 1) for p in PHASES}
 SPEED = 0.35  # m/s of the tool along a segment
 YAW_SPEED = 2.5  # rad/s
+JOINT_SPEED = 1.0  # rad/s of the joint that moves most, in joint-space moves
 CARRY_HEIGHT = 0.13  # tool height while moving above the table
 RELEASE_CLEARANCE = 0.022  # object bottom above the receptacle's floor when released
 MAX_RETRIES = 2
-
-
-def _tool_rotation(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
 
 
 def _wrap(a: float) -> float:
@@ -46,40 +42,10 @@ def _arc_interpolate(p0: np.ndarray, p1: np.ndarray, s: float) -> np.ndarray:
     return np.array([r * math.cos(a), r * math.sin(a), p0[2] + s * (p1[2] - p0[2])])
 
 
-class InverseKinematics:
-    """Damped least squares on the tool-center site, position and orientation."""
-
-    def __init__(self, model: mujoco.MjModel):
-        self.model = model
-        self.data = mujoco.MjData(model)
-        self.site = model.site("tcp").id
-        self.qadr = np.array([model.joint(n).qposadr[0] for n in robot.JOINT_NAMES])
-        self.dofadr = np.array([model.joint(n).dofadr[0] for n in robot.JOINT_NAMES])
-        self._jp = np.zeros((3, model.nv))
-        self._jr = np.zeros((3, model.nv))
-
-    def solve(self, q0: np.ndarray, pos: np.ndarray, yaw: float, iters: int = 30) -> np.ndarray:
-        q = q0.copy()
-        target_rot = _tool_rotation(yaw)
-        for _ in range(iters):
-            self.data.qpos[self.qadr] = q
-            mujoco.mj_kinematics(self.model, self.data)
-            mujoco.mj_comPos(self.model, self.data)
-            err_p = pos - self.data.site_xpos[self.site]
-            rot = self.data.site_xmat[self.site].reshape(3, 3)
-            err_r = 0.5 * sum(np.cross(rot[:, k], target_rot[:, k]) for k in range(3))
-            if np.linalg.norm(err_p) < 1e-4 and np.linalg.norm(err_r) < 1e-3:
-                break
-            mujoco.mj_jacSite(self.model, self.data, self._jp, self._jr, self.site)
-            jac = np.vstack([self._jp[:, self.dofadr], self._jr[:, self.dofadr]])
-            err = np.concatenate([err_p, err_r])
-            q = q + jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(6), err)
-            q = np.clip(q, robot.JOINT_RANGE[:, 0], robot.JOINT_RANGE[:, 1])
-        return q
-
-
-class ScriptedExpert:
-    """Call `reset(env)` after each `env.reset()`, then `act()` once per step."""
+class WaypointExpert:
+    """Drives the tool along smooth segments, one phase after another: Cartesian ones tracked with IK, or
+    joint-space ones. Subclasses plan each phase (`_start`) and choose the next (`_advance`).
+    Call `reset(env)` after each `env.reset()`, then `act()` once per step."""
 
     def __init__(self):
         self.env = None
@@ -93,9 +59,71 @@ class ScriptedExpert:
         pos, rot = self.env.tcp_pose()
         self.tool_pos = pos
         self.tool_yaw = math.atan2(rot[1, 0], rot[0, 0])
-        self.grip = 0.0
+        self.grip = self._initial_grip()
         self.retries = 0
-        self._start("approach")
+        self._start(self._first_phase())
+
+    def _initial_grip(self) -> float:
+        return 0.0
+
+    def _first_phase(self) -> str:
+        raise NotImplementedError
+
+    def _start(self, phase: str) -> None:
+        raise NotImplementedError
+
+    def _advance(self) -> None:
+        raise NotImplementedError
+
+    def _segment(self, goal, yaw, grip, speed=SPEED, min_steps=None):
+        dt = 1.0 / self.env.fps
+        dist = float(np.linalg.norm(np.asarray(goal) - self.tool_pos))
+        dyaw = _wrap(yaw - self.tool_yaw)
+        steps = max(int(math.ceil(max(dist / speed, abs(dyaw) / YAW_SPEED) / dt)), min_steps or 3)
+        self.seg = (
+            self.tool_pos.copy(),
+            np.asarray(goal, dtype=float),
+            self.tool_yaw,
+            self.tool_yaw + dyaw,
+            self.grip,
+            grip,
+            steps,
+        )
+        self.joint_goal = None
+
+    def _joint_segment(self, q_goal: np.ndarray, grip: float, speed: float = JOINT_SPEED) -> None:
+        """A move in joint space (to a joint pose rather than a tool pose), at `speed` rad/s on the joint
+        that moves most."""
+        dt = 1.0 / self.env.fps
+        steps = max(int(math.ceil(float(np.max(np.abs(q_goal - self.q_cmd))) / speed / dt)), 3)
+        self._segment(self.tool_pos, self.tool_yaw, grip, min_steps=steps)
+        self.joint_goal = (self.q_cmd.copy(), np.asarray(q_goal, dtype=float))
+
+    def act(self, obs=None) -> np.ndarray:
+        p0, p1, y0, y1, g0, g1, steps = self.seg
+        self.step_in_phase += 1
+        a = min(self.step_in_phase / steps, 1.0)
+        s = a * a * (3 - 2 * a)  # smoothstep: no velocity jumps between segments
+        self.grip = g0 + a * (g1 - g0)
+        if self.joint_goal is not None:
+            q0, q1 = self.joint_goal
+            self.q_cmd = q0 + s * (q1 - q0)
+            self.tool_pos, self.tool_yaw = self.ik.forward(self.q_cmd)
+        else:
+            self.tool_pos = _arc_interpolate(p0, p1, s)
+            self.tool_yaw = y0 + s * (y1 - y0)
+            self.q_cmd = self.ik.solve(self.q_cmd, self.tool_pos, self.tool_yaw)
+        action = np.concatenate([self.q_cmd, [self.grip]]).astype(np.float32)
+        if self.step_in_phase >= steps:
+            self._advance()
+        return action
+
+
+class ScriptedExpert(WaypointExpert):
+    """Pick and place: the phases of PHASES, in order."""
+
+    def _first_phase(self) -> str:
+        return "approach"
 
     @property
     def phase_label(self) -> int:
@@ -152,36 +180,6 @@ class ScriptedExpert:
             )
         elif phase == "done":
             self._segment(self.tool_pos, self.tool_yaw, open_grip, min_steps=1)
-
-    def _segment(self, goal, yaw, grip, speed=SPEED, min_steps=None):
-        dt = 1.0 / self.env.fps
-        dist = float(np.linalg.norm(np.asarray(goal) - self.tool_pos))
-        dyaw = _wrap(yaw - self.tool_yaw)
-        steps = max(int(math.ceil(max(dist / speed, abs(dyaw) / YAW_SPEED) / dt)), min_steps or 3)
-        self.seg = (
-            self.tool_pos.copy(),
-            np.asarray(goal, dtype=float),
-            self.tool_yaw,
-            self.tool_yaw + dyaw,
-            self.grip,
-            grip,
-            steps,
-        )
-
-    # -------------------------------------------------------------- acting
-    def act(self, obs=None) -> np.ndarray:
-        p0, p1, y0, y1, g0, g1, steps = self.seg
-        self.step_in_phase += 1
-        a = min(self.step_in_phase / steps, 1.0)
-        s = a * a * (3 - 2 * a)  # smoothstep: no velocity jumps between segments
-        self.tool_pos = _arc_interpolate(p0, p1, s)
-        self.tool_yaw = y0 + s * (y1 - y0)
-        self.grip = g0 + a * (g1 - g0)
-        self.q_cmd = self.ik.solve(self.q_cmd, self.tool_pos, self.tool_yaw)
-        action = np.concatenate([self.q_cmd, [self.grip]]).astype(np.float32)
-        if self.step_in_phase >= steps:
-            self._advance()
-        return action
 
     def _advance(self) -> None:
         if self.phase == "done":

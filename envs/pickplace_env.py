@@ -54,6 +54,15 @@ def check_resolution(height: int, width: int) -> None:
             )
 
 
+def check_fps(fps: int) -> None:
+    if (
+        not isinstance(fps, int)
+        or not 1 <= fps <= 100
+        or round(1 / (fps * PHYSICS_DT)) * fps * PHYSICS_DT != 1
+    ):
+        raise ValueError(f"Control rate fps={fps!r} is not allowed; allowed: divisors of 500 from 5 to 100")
+
+
 class PickPlaceEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": DEFAULT_FPS}
 
@@ -78,14 +87,7 @@ class PickPlaceEnv(gym.Env):
             raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"Unknown render_mode {render_mode!r}; allowed: rgb_array or None")
-        if (
-            not isinstance(fps, int)
-            or not 1 <= fps <= 100
-            or round(1 / (fps * PHYSICS_DT)) * fps * PHYSICS_DT != 1
-        ):
-            raise ValueError(
-                f"Control rate fps={fps!r} is not allowed; allowed: divisors of 500 from 5 to 100"
-            )
+        check_fps(fps)
         check_fits(task, self.condition, counterbalanced)
         self.task = task
         self.counterbalanced = counterbalanced

@@ -196,3 +196,58 @@ def _add_gripper(spec: mujoco.MjSpec, flange) -> None:
     act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
     act.forcerange = [-GRIPPER_FORCE, GRIPPER_FORCE]
     act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+
+
+def tool_rotation(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
+
+
+class InverseKinematics:
+    """Damped least squares on the tool-center site, position and orientation."""
+
+    def __init__(self, model: mujoco.MjModel):
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.site = model.site("tcp").id
+        self.qadr = np.array([model.joint(n).qposadr[0] for n in JOINT_NAMES])
+        self.dofadr = np.array([model.joint(n).dofadr[0] for n in JOINT_NAMES])
+        self._jp = np.zeros((3, model.nv))
+        self._jr = np.zeros((3, model.nv))
+
+    def solve(self, q0: np.ndarray, pos: np.ndarray, yaw: float, iters: int = 30) -> np.ndarray:
+        q = q0.copy()
+        target_rot = tool_rotation(yaw)
+        for _ in range(iters):
+            self.data.qpos[self.qadr] = q
+            mujoco.mj_kinematics(self.model, self.data)
+            mujoco.mj_comPos(self.model, self.data)
+            err_p = pos - self.data.site_xpos[self.site]
+            rot = self.data.site_xmat[self.site].reshape(3, 3)
+            err_r = 0.5 * sum(np.cross(rot[:, k], target_rot[:, k]) for k in range(3))
+            if np.linalg.norm(err_p) < 1e-4 and np.linalg.norm(err_r) < 1e-3:
+                break
+            mujoco.mj_jacSite(self.model, self.data, self._jp, self._jr, self.site)
+            jac = np.vstack([self._jp[:, self.dofadr], self._jr[:, self.dofadr]])
+            err = np.concatenate([err_p, err_r])
+            q = q + jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(6), err)
+            q = np.clip(q, JOINT_RANGE[:, 0], JOINT_RANGE[:, 1])
+        return q
+
+    def forward(self, q: np.ndarray) -> tuple[np.ndarray, float]:
+        """Tool-center position and yaw at joint positions `q`."""
+        self.data.qpos[self.qadr] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        rot = self.data.site_xmat[self.site].reshape(3, 3)
+        return self.data.site_xpos[self.site].copy(), math.atan2(rot[1, 0], rot[0, 0])
+
+    def solve_from(self, q0: np.ndarray, pos: np.ndarray, yaw: float, steps: int = 20) -> np.ndarray:
+        """Joint positions for a distant tool pose, reached from `q0` through `steps` intermediate poses on
+        the straight line: one far jump lets damped least squares settle in another arm configuration."""
+        start, start_yaw = self.forward(q0)
+        dyaw = (yaw - start_yaw + math.pi) % (2 * math.pi) - math.pi
+        q = q0.copy()
+        for k in range(1, steps + 1):
+            s = k / steps
+            q = self.solve(q, start + s * (np.asarray(pos) - start), start_yaw + s * dyaw)
+        return self.solve(q, np.asarray(pos), yaw, iters=100)

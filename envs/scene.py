@@ -29,9 +29,9 @@ def entity_body_name(label: int) -> str:
     return f"entity{label}"
 
 
-def build_model(layout: Layout) -> mujoco.MjModel:
-    """Compiles the scene for a layout's assets. Poses are set later (`apply_layout`), so a model
-    can be reused for every layout with the same assets."""
+def workcell_spec() -> mujoco.MjSpec:
+    """What every task shares: physics options, the table, the light, the scene camera `top`, the arm with
+    its gripper and the `wrist` camera. Tasks add their bodies to the world and compile."""
     spec = mujoco.MjSpec()
     spec.compiler.degree = False
     spec.option.timestep = PHYSICS_DT
@@ -60,14 +60,21 @@ def build_model(layout: Layout) -> mujoco.MjModel:
     spec.body("flange").add_camera(
         name="wrist", pos=[0.0, -0.06, 0.04], quat=_quat_from_euler(0, math.pi, 0), fovy=75.0
     )
+    return spec
 
+
+def build_model(layout: Layout) -> mujoco.MjModel:
+    """Compiles the scene for a layout's assets. Poses are set later (`apply_layout`), so a model
+    can be reused for every layout with the same assets."""
+    spec = workcell_spec()
+    world = spec.worldbody
     for entity in layout.entities:
         body = world.add_body(name=entity_body_name(entity.label), pos=[*entity.xy, 0.0])
         if entity.asset.role == "object":
             body.add_freejoint(name=f"{entity_body_name(entity.label)}_free")
             _add_object_geoms(spec, body, entity.asset, entity.label)
         else:
-            _add_receptacle_geoms(body, entity.asset)
+            add_receptacle_geoms(body, entity.asset)
     return spec.compile()
 
 
@@ -126,7 +133,7 @@ def _add_object_geoms(spec: mujoco.MjSpec, body, asset: Asset, label: int) -> No
         body.add_geom(**common, **g, mass=mass)
 
 
-def _add_receptacle_geoms(body, asset: Asset) -> None:
+def add_receptacle_geoms(body, asset: Asset) -> None:
     """Static container: a floor and one box wall per polygon side."""
     shape = RECEPTACLE_SHAPES[asset.shape]
     common = dict(rgba=asset.rgba, contype=robot.BIT_TABLE, conaffinity=robot.BIT_OBJECT | robot.BIT_FINGER)

@@ -14,6 +14,9 @@ ROLES = ("object", "receptacle")
 MATCHES = ("color", "shape", "neither")
 MAX_PER_CLASS = 3
 TASKS = ("PickPlaceFixedBin-v0", "PickPlaceRandomBin-v0")
+# The state-conditioned routing task of the VLA case study: no competitor conditions, subgoals instead.
+ROUTING_TASK = "InstrumentRouting-v0"
+ENV_TASKS = (*TASKS, ROUTING_TASK)
 
 
 @dataclass(frozen=True)
@@ -100,4 +103,11 @@ PAPER_GRID = tuple(NAMED_CONDITIONS)
 def check_task(task: str) -> str:
     if task not in TASKS:
         raise ValueError(f"Unknown task {task!r}; allowed: {', '.join(TASKS)}")
+    return task
+
+
+def check_env_task(task: str) -> str:
+    """A task the `condground` env type runs (the pick-and-place tasks and the routing task)."""
+    if task not in ENV_TASKS:
+        raise ValueError(f"Unknown task {task!r}; allowed: {', '.join(ENV_TASKS)}")
     return task

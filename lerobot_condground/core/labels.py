@@ -31,7 +31,11 @@ PROMPT_CAMERA_KEYS = {
     "observation.images.prompt_object": OBS_PROMPT_OBJECT,
     "observation.images.prompt_receptacle": OBS_PROMPT_RECEPTACLE,
 }
-PNG_LABEL_KEYS = (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
+# InstrumentRouting-v0 (labels of `envs/routing_scene.py` in both segmentations): the wrist camera's label
+# map, and the side the instrument must go to (0 left, 1 right; what the explicit instruction names).
+OBS_SEGMENTATION_WRIST = "observation.segmentation_wrist"
+OBS_DESTINATION = "observation.destination"
+PNG_LABEL_KEYS = (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE, OBS_SEGMENTATION_WRIST)
 PNG_FEATURE = {"dtype": "string", "shape": (1,), "names": None}
 
 BACKGROUND, TARGET_OBJECT, TARGET_RECEPTACLE, FIRST_COMPETITOR = 0, 1, 2, 3

@@ -1,9 +1,10 @@
 """`condground record`: scripted-expert demonstrations written to a LeRobotDataset (v3).
 
-Per frame: camera frames, `observation.state`, `action`, and the label features of
-`lerobot_condground.core.labels` (phase, lossless segmentation, prompt crops). Per episode, the
-provenance file `meta/condground_record.json` keeps the seed and which competitor each
-segmentation label is.
+Per frame: camera frames, `observation.state`, `action`, the task string, and the label features of
+`lerobot_condground.core.labels`: pick-and-place: phase, lossless segmentation, prompt crops;
+InstrumentRouting-v0: the procedure step as phase, both cameras' segmentation, the destination side, and
+the instruction of the subgoal in progress as the frame's task. Per episode, the provenance file
+`meta/condground_record.json` keeps the seed and what each segmentation label is.
 
 Only successful expert episodes are kept; a failed one is retried with the next seed and counted.
 The dataset is closed after every `checkpoint_every` episodes, so a crash loses at most the episodes
@@ -22,13 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_condground.core.conditions import ROUTING_TASK
 from lerobot_condground.core.configs import DatasetOutputConfig, check_at_least, check_seed
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.labels import (
+    OBS_DESTINATION,
     OBS_PHASE,
     OBS_PROMPT_OBJECT,
     OBS_PROMPT_RECEPTACLE,
     OBS_SEGMENTATION,
+    OBS_SEGMENTATION_WRIST,
     PNG_FEATURE,
     encode_png,
 )
@@ -44,6 +48,7 @@ PROVENANCE_ENV_KEYS = (
     "observation_height",
     "observation_width",
     "wrist_camera",
+    "subgoal",
 )
 
 
@@ -93,18 +98,37 @@ def dataset_features(env_cfg: CondGroundEnvConfig, video: bool, labels: bool = T
     }
     if labels:
         features[OBS_PHASE] = {"dtype": "int64", "shape": (1,), "names": ["phase"]}
-        features |= {
-            key: dict(PNG_FEATURE) for key in (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
-        }
+        if env_cfg.task == ROUTING_TASK:
+            features[OBS_DESTINATION] = {"dtype": "int64", "shape": (1,), "names": ["destination"]}
+            pngs = (OBS_SEGMENTATION, *((OBS_SEGMENTATION_WRIST,) if env_cfg.wrist_camera else ()))
+        else:
+            pngs = (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
+        features |= {key: dict(PNG_FEATURE) for key in pngs}
     if env_cfg.wrist_camera:
         features["observation.images.wrist"] = dict(image)
     return features
 
 
 def make_recording_env(env_cfg: CondGroundEnvConfig, labels: bool = True):
+    """The task's env with what the recording writes turned on, and its scripted expert."""
+    if env_cfg.task == ROUTING_TASK:
+        from lerobot_condground.envs.routing_env import InstrumentRoutingEnv
+        from lerobot_condground.envs.routing_expert import RoutingExpert
+
+        env = InstrumentRoutingEnv(
+            subgoal=env_cfg.subgoal,
+            observation_height=env_cfg.observation_height,
+            observation_width=env_cfg.observation_width,
+            wrist_camera=env_cfg.wrist_camera,
+            segmentation=labels,
+            destination=labels,
+            fps=env_cfg.fps,
+        )
+        return env, RoutingExpert()
+    from lerobot_condground.envs.expert import ScriptedExpert
     from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
-    return PickPlaceEnv(
+    env = PickPlaceEnv(
         task=env_cfg.task,
         condition=env_cfg.condition,
         counterbalanced=env_cfg.counterbalanced,
@@ -115,6 +139,7 @@ def make_recording_env(env_cfg: CondGroundEnvConfig, labels: bool = True):
         prompts=labels,
         fps=env_cfg.fps,
     )
+    return env, ScriptedExpert()
 
 
 def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict:
@@ -126,12 +151,17 @@ def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict
         "task": task,
     }
     if "segmentation" in obs:
-        frame |= {
-            OBS_PHASE: np.array([phase], dtype=np.int64),
-            OBS_SEGMENTATION: encode_png(obs["segmentation"]),
-            OBS_PROMPT_OBJECT: encode_png(obs["prompt_object"]),
-            OBS_PROMPT_RECEPTACLE: encode_png(obs["prompt_receptacle"]),
-        }
+        frame[OBS_PHASE] = np.array([phase], dtype=np.int64)
+        for key, name in (
+            (OBS_SEGMENTATION, "segmentation"),
+            (OBS_SEGMENTATION_WRIST, "segmentation_wrist"),
+            (OBS_PROMPT_OBJECT, "prompt_object"),
+            (OBS_PROMPT_RECEPTACLE, "prompt_receptacle"),
+        ):
+            if name in obs:
+                frame[key] = encode_png(obs[name])
+    if "destination" in obs:
+        frame[OBS_DESTINATION] = np.array([obs["destination"]], dtype=np.int64)
     if "wrist" in obs["pixels"]:
         frame["observation.images.wrist"] = obs["pixels"]["wrist"]
     return frame
@@ -159,7 +189,7 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         mismatches += [
             f"feature {key}" for key in sorted(set(info["features"]) - set(features) - set(DEFAULT_FEATURES))
         ]
-        for key in ("task", "condition", "counterbalanced"):
+        for key in ("task", "condition", "counterbalanced", "subgoal"):
             if previous.get("env", {}).get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
                 mismatches.append(f"env.{key} {previous['env'][key]!r} != {getattr(cfg.env, key)!r}")
         if mismatches:
@@ -202,7 +232,7 @@ def record(cfg: RecordConfig) -> dict:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from tqdm import tqdm
 
-    from lerobot_condground.envs.expert import ScriptedExpert, run_expert_episode
+    from lerobot_condground.envs.expert import run_expert_episode
 
     # SVT-AV1 (LeRobot's video encoder) prints a 20-line banner to stderr for every encoded episode; at
     # level 1 (errors) it stays quiet. Read by the library at each encoder start; a user's value wins.
@@ -210,10 +240,8 @@ def record(cfg: RecordConfig) -> dict:
     # The recording shows its own progress: no codec line per saved episode (nor `datasets` bar, below).
     logging.getLogger("lerobot.configs.video").setLevel(logging.WARNING)
     features = dataset_features(cfg.env, cfg.dataset.video, cfg.dataset.labels)
-    env = make_recording_env(
-        cfg.env, cfg.dataset.labels
-    )  # validates the condition and its layout before anything is written
-    expert = ScriptedExpert()
+    # Validates the condition and its layout before anything is written.
+    env, expert = make_recording_env(cfg.env, cfg.dataset.labels)
     root = cfg.dataset.path()
     dataset, previous = _open_dataset(cfg, root, features)
     have = dataset.meta.total_episodes
@@ -231,7 +259,7 @@ def record(cfg: RecordConfig) -> dict:
     bar = tqdm(
         total=cfg.dataset.num_episodes,
         initial=have,
-        desc=f"record {cfg.env.task} {cfg.env.condition}",
+        desc=f"record {cfg.env.task} {cfg.env.subgoal if cfg.env.task == ROUTING_TASK else cfg.env.condition}",
         unit="ep",
         disable=not cfg.progress,
     )
@@ -264,6 +292,7 @@ def record(cfg: RecordConfig) -> dict:
             successes += 1
             state["episodes"].append(
                 {"seed": seed, "task": env.task_description, "entities": env.entity_table()}
+                | ({"subgoal": env.episode} if cfg.env.task == ROUTING_TASK else {})
             )
             _write_provenance(root, cfg, state)  # before the data, so a resumed run never reuses a seed
             for frame in frames:
@@ -288,16 +317,20 @@ def record(cfg: RecordConfig) -> dict:
         "attempts": attempts,
         "successes": successes,
         "stages": dict(run_stages),
+        "task": cfg.env.task,
         "root": str(root),
         "total_episodes": have,
     }
 
 
 def format_summary(result: dict) -> str:
-    from lerobot_condground.envs.stages import STAGES
-
-    stage_counts = ", ".join(f"{name}={result['stages'].get(i, 0)}" for i, name in enumerate(STAGES))
     line = f"expert success: {result['successes']}/{result['attempts']}"
     if not result["attempts"]:
         line += f" (the dataset already holds {result['total_episodes']} episodes)"
+    if result.get("task") == ROUTING_TASK:
+        counts = ", ".join(f"{n}={c}" for n, c in sorted(result["stages"].items()))
+        return f"{line}\nsubgoals reached in order (count=episodes): {counts}"
+    from lerobot_condground.envs.stages import STAGES
+
+    stage_counts = ", ".join(f"{name}={result['stages'].get(i, 0)}" for i, name in enumerate(STAGES))
     return f"{line}\nstages reached: {stage_counts}"

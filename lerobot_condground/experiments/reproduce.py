@@ -37,7 +37,7 @@ def _script(name: str) -> str:
     return str(Path(sys.executable).parent / name)
 
 
-class StageFailed(RuntimeError):
+class StageFailedError(RuntimeError):
     """A stage's command exited with an error: its own log says why, not a traceback of this scheduler."""
 
 
@@ -236,7 +236,7 @@ def run(cfg: ReproduceConfig) -> Path:
                 del running[name]
                 if proc.returncode != 0:
                     tail = _log(cfg, stage).read_text(errors="replace").splitlines()[-40:]
-                    raise StageFailed(
+                    raise StageFailedError(
                         f"stage {name} failed (exit {proc.returncode}); the end of its log {_log(cfg, stage)}:\n"
                         + "\n".join(tail)
                         + "\nThe stages done are kept: the same command retries from this one."

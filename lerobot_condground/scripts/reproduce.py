@@ -6,12 +6,12 @@ condground reproduce --preset=cpu|paper --output_dir=DIR [--dry_run=true] [--tra
 import sys
 
 from lerobot_condground.experiments.plan import ReproduceConfig as Config
-from lerobot_condground.experiments.reproduce import StageFailed, run
+from lerobot_condground.experiments.reproduce import StageFailedError, run
 
 
 def main(cfg: Config) -> None:
     try:
         run(cfg)
-    except StageFailed as err:
+    except StageFailedError as err:
         print(f"condground reproduce: {err}", file=sys.stderr)
         sys.exit(1)

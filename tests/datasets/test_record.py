@@ -13,7 +13,6 @@ from lerobot_condground.core.labels import (
     OBS_PROMPT_OBJECT,
     OBS_PROMPT_RECEPTACLE,
     OBS_SEGMENTATION,
-    PNG_LABEL_KEYS,
     decode_labels,
     phase_masks,
 )
@@ -29,7 +28,8 @@ def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_
     assert ds.meta.video_keys == ["observation.images.top"]
     # Label images are PNG strings: cheap to fetch for every frame of an action chunk, skipped by stats.
     assert all(
-        ds.meta.features[key]["dtype"] == "string" and key not in ds.meta.stats for key in PNG_LABEL_KEYS
+        ds.meta.features[key]["dtype"] == "string" and key not in ds.meta.stats
+        for key in (OBS_SEGMENTATION, OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)
     )
     provenance = read_json(recorded_dataset / RECORD_FILE)
     assert provenance["env"]["condition"] == "full_mixed" and len(provenance["episodes"]) == 2

@@ -6,7 +6,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from lerobot_condground.core.conditions import FIELD_NAMES, TASKS, ConditionSpec
 from lerobot_condground.envs import assets, layout, robot
-from lerobot_condground.envs.expert import InverseKinematics, _tool_rotation
+from lerobot_condground.envs.robot import InverseKinematics, tool_rotation
 
 
 def test_evaluation_and_augmentation_pools_are_disjoint():
@@ -93,4 +93,4 @@ def test_every_point_of_the_workspace_is_reachable_top_down():
                 ik.data.qpos[ik.qadr] = q
                 mujoco.mj_kinematics(model, ik.data)
                 assert np.linalg.norm(ik.data.site_xpos[ik.site] - goal) < 2e-3, (r, angle, z)
-                assert np.allclose(ik.data.site_xmat[ik.site].reshape(3, 3), _tool_rotation(angle), atol=2e-2)
+                assert np.allclose(ik.data.site_xmat[ik.site].reshape(3, 3), tool_rotation(angle), atol=2e-2)
