@@ -10,6 +10,7 @@ from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_condground.core.conditions import ROUTING_TASK, ConditionSpec, check_env_task
 from lerobot_condground.core.labels import OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE
+from lerobot_condground.core.routing import INSTRUCTION_FORMS, parse_episodes
 
 from . import GYM_NAMESPACE
 
@@ -26,6 +27,9 @@ class CondGroundEnvConfig(EnvConfig):
     counterbalanced: permute target and competitor colors and shapes across episodes.
     subgoal (InstrumentRouting-v0): procedure, a subgoal (pick, inspect, route, place, home), or several
         separated by commas, one drawn per episode.
+    cue (InstrumentRouting-v0): true sends the destination masks the `condground_rgb_cue` step draws,
+        false sends empty ones (the cue hidden); unset sends none.
+    instruction (InstrumentRouting-v0): the task strings' form, generic or explicit.
     """
 
     task: str | None = "PickPlaceRandomBin-v0"
@@ -43,6 +47,8 @@ class CondGroundEnvConfig(EnvConfig):
     # Pick-and-place only; on by default there.
     prompts: bool | None = None
     subgoal: str = "procedure"
+    cue: bool | None = None
+    instruction: str = "generic"
     render_mode: str = "rgb_array"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
@@ -64,8 +70,6 @@ class CondGroundEnvConfig(EnvConfig):
         ConditionSpec.parse(self.condition)
         routing = self.task == ROUTING_TASK
         if routing:
-            from .routing_env import parse_episodes
-
             parse_episodes(self.subgoal)
             for flag, value, allowed in (
                 ("condition", self.condition, "clean"),
@@ -77,10 +81,20 @@ class CondGroundEnvConfig(EnvConfig):
                         f"--env.{flag}={value!r} does not apply to {ROUTING_TASK} (no look-alike competitors); "
                         f"leave it at its default"
                     )
-        elif self.subgoal != "procedure":
-            raise ValueError(
-                f"--env.subgoal={self.subgoal!r} applies to {ROUTING_TASK} only; task is {self.task}"
-            )
+            if self.instruction not in INSTRUCTION_FORMS:
+                raise ValueError(
+                    f"--env.instruction={self.instruction!r} is not allowed; allowed: {', '.join(INSTRUCTION_FORMS)}"
+                )
+        else:
+            for flag, value, default in (
+                ("subgoal", self.subgoal, "procedure"),
+                ("cue", self.cue, None),
+                ("instruction", self.instruction, "generic"),
+            ):
+                if value != default:
+                    raise ValueError(
+                        f"--env.{flag}={value!r} applies to {ROUTING_TASK} only; task is {self.task}"
+                    )
         if self.wrist_camera is None:
             self.wrist_camera = routing
         if self.prompts is None:
@@ -130,6 +144,8 @@ class CondGroundEnvConfig(EnvConfig):
                 "observation_height": self.observation_height,
                 "observation_width": self.observation_width,
                 "wrist_camera": self.wrist_camera,
+                "cue": self.cue,
+                "instruction": self.instruction,
                 "render_mode": self.render_mode,
                 "fps": self.fps,
                 "max_episode_steps": self.episode_length,

@@ -17,9 +17,11 @@ instrument's mark does. `subgoal="procedure"` runs the whole procedure from the 
 subgoal in order); a comma-separated list draws one entry per episode from the episode's seed.
 
 Observation: `pixels` (`top`, and `wrist` unless turned off), `agent_pos` (6 joints + gripper closure);
-optionally `segmentation` / `segmentation_wrist` (labels of `routing_scene`) and `destination`
-(0 left, 1 right: what the explicit instruction names). `task_description` is the generic instruction of
-the subgoal in progress; `instruction(subgoal, "explicit")` gives the other form.
+optionally `segmentation` / `segmentation_wrist` (labels of `core/routing.py`) and `destination`
+(0 left, 1 right: what the explicit instruction names). `cue=True` sends the segmentations for the
+`condground_rgb_cue` step to highlight the destination, `cue=False` sends them empty (evaluated without
+the cue). `task_description` is the instruction of the subgoal in progress, in the form `instruction`
+(generic or explicit).
 Reward: 1 on the step the episode's goal is reached. An instrument let go in the wrong container ends the
 episode (`terminated`, not a success).
 """
@@ -34,6 +36,13 @@ import mujoco
 import numpy as np
 
 from lerobot_condground.core.conditions import ROUTING_TASK
+from lerobot_condground.core.routing import (
+    INSTRUCTION_FORMS,
+    SIDES,
+    SUBGOALS,
+    instruction,
+    parse_episodes,
+)
 
 from . import robot
 from .assets import RECEPTACLE_SHAPES
@@ -42,7 +51,6 @@ from .routing_scene import (
     GRASP_WIDTH,
     HANDLE_HALF,
     INSPECT_POINT,
-    SIDES,
     SORT_HEIGHT,
     apply_routing_layout,
     build_routing_model,
@@ -51,18 +59,6 @@ from .routing_scene import (
 )
 from .scene import FLOOR_THICKNESS, PHYSICS_DT, inside_receptacle
 
-STEPS = ("approach", "pick", "inspect", "route", "place", "retreat", "home")
-SUBGOALS = ("pick", "inspect", "route", "place", "home")
-ROUTING_SUBGOALS = ("route", "place")
-EPISODES = ("procedure", *SUBGOALS)
-INSTRUCTION_FORMS = ("generic", "explicit")
-_INSTRUCTIONS = {
-    "pick": "pick up the instrument",
-    "inspect": "show the instrument to the inspection camera",
-    "route": "move the instrument over the {} container",
-    "place": "put the instrument into the {} container",
-    "home": "return the arm to its home pose",
-}
 LIFT_HEIGHT = 0.04
 INSPECT_TOLERANCE, INSPECT_HOLD_S = 0.03, 0.5
 HOME_TOLERANCE = 0.1  # rad, every joint
@@ -70,30 +66,6 @@ HOME_TOLERANCE = 0.1  # rad, every joint
 OPEN_CLOSURE = 0.6
 REST_SPEED = 0.03  # m/s
 OBS_TYPES = ("pixels_agent_pos", "pixels", "agent_pos")
-
-
-def instruction(subgoal: str, form: str = "generic", destination: str | None = None) -> str:
-    """The subgoal's instruction: generic ("... the highlighted container") or explicit ("... the left
-    container"; needs the destination)."""
-    if subgoal not in _INSTRUCTIONS:
-        raise ValueError(f"Unknown subgoal {subgoal!r}; allowed: {', '.join(SUBGOALS)}")
-    if form not in INSTRUCTION_FORMS:
-        raise ValueError(f"Unknown instruction form {form!r}; allowed: {', '.join(INSTRUCTION_FORMS)}")
-    if form == "explicit" and subgoal in ROUTING_SUBGOALS and destination not in SIDES:
-        raise ValueError(f"The explicit {subgoal} instruction needs the destination; got {destination!r}")
-    return _INSTRUCTIONS[subgoal].format("highlighted" if form == "generic" else destination)
-
-
-def parse_episodes(text: str) -> tuple[str, ...]:
-    """`procedure`, a subgoal, or several of them separated by commas."""
-    items = tuple(t.strip() for t in str(text).split(",") if t.strip())
-    bad = [t for t in items if t not in EPISODES]
-    if not items or bad or len(set(items)) != len(items):
-        raise ValueError(
-            f"subgoal={text!r} is not allowed; allowed: {', '.join(EPISODES)}, or several of them "
-            "separated by commas, each once"
-        )
-    return items
 
 
 class RoutingTracker:
@@ -202,6 +174,8 @@ class InstrumentRoutingEnv(gym.Env):
         wrist_camera: bool = True,
         segmentation: bool = False,
         destination: bool = False,
+        cue: bool | None = None,
+        instruction: str = "generic",
         render_mode: str | None = "rgb_array",
         fps: int = 20,
     ):
@@ -213,10 +187,21 @@ class InstrumentRoutingEnv(gym.Env):
         check_fps(fps)
         if obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
+        if instruction not in INSTRUCTION_FORMS:
+            raise ValueError(
+                f"Unknown instruction form {instruction!r}; allowed: {', '.join(INSTRUCTION_FORMS)}"
+            )
+        if segmentation and cue is False:
+            raise ValueError(
+                "segmentation=True and cue=False contradict each other: cue=False sends empty label maps"
+            )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"Unknown render_mode {render_mode!r}; allowed: rgb_array or None")
         self.obs_type, self.height, self.width = obs_type, observation_height, observation_width
-        self.wrist_camera, self.segmentation, self.with_destination = wrist_camera, segmentation, destination
+        self.wrist_camera, self.with_destination = wrist_camera, destination
+        self.segmentation = segmentation or cue is not None
+        self.blank_labels = cue is False
+        self.instruction_form = instruction
         self.render_mode, self.fps = render_mode, fps
         self.n_substeps = round(1 / (fps * PHYSICS_DT))
         self.metadata = {**self.metadata, "render_fps": fps}
@@ -236,7 +221,7 @@ class InstrumentRoutingEnv(gym.Env):
             if wrist_camera:
                 spaces["segmentation_wrist"] = labels
         if destination:
-            spaces["destination"] = gym.spaces.Discrete(2)
+            spaces["destination"] = gym.spaces.Box(0, 1, (1,), dtype=np.int64)
         self.observation_space = gym.spaces.Dict(spaces)
 
         self.model = build_routing_model()
@@ -307,7 +292,7 @@ class InstrumentRoutingEnv(gym.Env):
 
     @property
     def task_description(self) -> str:
-        return instruction(self.subgoal)
+        return instruction(self.subgoal, self.instruction_form, self.layout.destination)
 
     def explicit_instruction(self) -> str:
         return instruction(self.subgoal, "explicit", self.layout.destination)
@@ -363,8 +348,9 @@ class InstrumentRoutingEnv(gym.Env):
             r.disable_segmentation_rendering()
         ids, types = seg[..., 0], seg[..., 1]
         labels = np.zeros(ids.shape, dtype=np.uint8)
-        is_geom = (types == int(mujoco.mjtObj.mjOBJ_GEOM)) & (ids >= 0)
-        labels[is_geom] = self._geom_label[ids[is_geom]]
+        if not self.blank_labels:
+            is_geom = (types == int(mujoco.mjtObj.mjOBJ_GEOM)) & (ids >= 0)
+            labels[is_geom] = self._geom_label[ids[is_geom]]
         return labels
 
     # ------------------------------------------------------------------ internals
@@ -440,7 +426,7 @@ class InstrumentRoutingEnv(gym.Env):
             if self.wrist_camera:
                 obs["segmentation_wrist"] = self.render_segmentation("wrist")
         if self.with_destination:
-            obs["destination"] = SIDES.index(self.layout.destination)
+            obs["destination"] = np.array([SIDES.index(self.layout.destination)], dtype=np.int64)
         return obs
 
     def _info(self) -> dict:

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from lerobot_condground.core.routing import STEPS
+
 from . import robot
 from .expert import CARRY_HEIGHT, WaypointExpert
-from .routing_env import INSPECT_HOLD_S, STEPS
+from .routing_env import INSPECT_HOLD_S
 from .routing_scene import GRASP_WIDTH, INSPECT_POINT, SORT_HEIGHT, release_height
 
 PHASES = (

@@ -5,7 +5,7 @@ goes by a fixed rule: marked -> left container, unmarked -> right container, lef
 sees them (its base facing the table along +x: left is +y; the scene camera, facing the robot, shows the
 left container on the right of its image).
 
-Segmentation labels (`ROUTING_LABELS`): 0 background and robot, 1 instrument, 2 the correct container,
+Segmentation labels (`core/routing.py`): 0 background and robot, 1 instrument, 2 the correct container,
 3 the other container, 4 the state-bearing region (the patch of the handle that carries the mark, also
 when it is unmarked).
 """
@@ -18,20 +18,18 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from lerobot_condground.core.routing import (
+    DESTINATION,
+    DESTINATION_OF,
+    INSTRUMENT,
+    OTHER_CONTAINER,
+    SIDES,
+    STATE_REGION,
+)
+
 from . import robot
 from .assets import FLOOR_THICKNESS, Asset
 from .scene import add_receptacle_geoms, workcell_spec
-
-INSTRUMENT, DESTINATION, OTHER_CONTAINER, STATE_REGION = 1, 2, 3, 4
-ROUTING_LABELS = {
-    "instrument": INSTRUMENT,
-    "destination": DESTINATION,
-    "other_container": OTHER_CONTAINER,
-    "state_region": STATE_REGION,
-}
-SIDES = ("left", "right")
-# The rule: a contaminated (marked) instrument goes left, a clean one right.
-DESTINATION_OF = {True: "left", False: "right"}
 
 # Instrument: a steel handle with a darker head; the jaw closes across the handle's width.
 HANDLE_HALF = (0.034, 0.011, 0.011)  # m, half sizes (length, width, height)

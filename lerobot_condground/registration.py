@@ -11,7 +11,12 @@ from lerobot_condground import (
 )
 from lerobot_condground.cameras import config_ur3e_twin  # noqa: F401  CameraConfig type "ur3e_twin"
 from lerobot_condground.envs import configs  # noqa: F401  EnvConfig type "condground"
-from lerobot_condground.processors import copy_paste, decode_labels  # noqa: F401  condground_* ProcessorSteps
+from lerobot_condground.processors import (  # noqa: F401  condground_* ProcessorSteps
+    copy_paste,
+    decode_labels,
+    instruction,
+    rgb_cue,
+)
 from lerobot_condground.robots import config_ur3e  # noqa: F401  RobotConfig type "ur3e"
 from lerobot_condground.teleoperators import (
     config_ur3e_teleops,  # noqa: F401  ur3e_freedrive/_keyboard/_expert

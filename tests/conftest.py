@@ -59,3 +59,17 @@ def tiny_checkpoints(tmp_path_factory) -> list[Path]:
     """Two act_modified/full checkpoints (training seeds 0 and 1), random weights, 96x128 camera."""
     root = tmp_path_factory.mktemp("checkpoints")
     return [make_checkpoint(root / f"seed{seed}", seed=seed) for seed in (0, 1)]
+
+
+@pytest.fixture(scope="session")
+def routing_dataset(tmp_path_factory) -> Path:
+    """Three expert episodes of InstrumentRouting-v0 at 96x128 (the whole procedure, or `place` from its
+    start), with both cameras, both segmentations and the destination."""
+    root = tmp_path_factory.mktemp("routing") / "data"
+    out = run_cli(
+        "condground", "record", "--env.task=InstrumentRouting-v0", "--env.subgoal=procedure,place",
+        "--env.observation_height=96", "--env.observation_width=128", "--dataset.repo_id=local/routing",
+        f"--dataset.root={root}", "--dataset.num_episodes=3", "--progress=false",
+    )  # fmt: skip
+    assert "expert success: 3/3" in out.stdout, out.stdout
+    return root

@@ -161,7 +161,7 @@ def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict
             if name in obs:
                 frame[key] = encode_png(obs[name])
     if "destination" in obs:
-        frame[OBS_DESTINATION] = np.array([obs["destination"]], dtype=np.int64)
+        frame[OBS_DESTINATION] = np.asarray(obs["destination"], dtype=np.int64).reshape(1)
     if "wrist" in obs["pixels"]:
         frame["observation.images.wrist"] = obs["pixels"]["wrist"]
     return frame

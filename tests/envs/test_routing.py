@@ -8,10 +8,17 @@ import numpy as np
 import pytest
 
 from helpers import read_json, run_cli
+from lerobot_condground.core.routing import (
+    DESTINATION,
+    EPISODES,
+    OTHER_CONTAINER,
+    STATE_REGION,
+    SUBGOALS,
+    instruction,
+)
 from lerobot_condground.envs.expert import run_expert_episode
-from lerobot_condground.envs.routing_env import EPISODES, SUBGOALS, InstrumentRoutingEnv, instruction
+from lerobot_condground.envs.routing_env import InstrumentRoutingEnv
 from lerobot_condground.envs.routing_expert import RoutingExpert
-from lerobot_condground.envs.routing_scene import DESTINATION, OTHER_CONTAINER, STATE_REGION
 
 
 def _expert_results(episode: str, n: int, seed: int = 0) -> list[dict]:
@@ -132,18 +139,6 @@ def test_env_config_flags_that_do_not_apply_are_refused():
     cfg = CondGroundEnvConfig(task="InstrumentRouting-v0")
     assert cfg.wrist_camera and not cfg.prompts and "pixels/wrist" in cfg.features
     assert not CondGroundEnvConfig(task="PickPlaceRandomBin-v0").wrist_camera
-
-
-@pytest.fixture(scope="module")
-def routing_dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("routing") / "data"
-    out = run_cli(
-        "condground", "record", "--env.task=InstrumentRouting-v0", "--env.subgoal=procedure,place",
-        "--env.observation_height=96", "--env.observation_width=128", "--dataset.repo_id=local/routing",
-        f"--dataset.root={root}", "--dataset.num_episodes=3", "--progress=false",
-    )  # fmt: skip
-    assert "expert success: 3/3" in out.stdout, out.stdout
-    return root
 
 
 def test_a_recording_holds_both_cameras_the_instructions_and_the_masks(routing_dataset):
