@@ -64,7 +64,7 @@ class CondGroundEnvConfig(EnvConfig):
 
     def __post_init__(self):
         # Bad names and sizes fail here, when the command line is parsed, before any work starts.
-        from .pickplace_env import OBS_TYPES, check_resolution
+        from .arm_env import OBS_TYPES, check_resolution
 
         check_env_task(self.task)
         ConditionSpec.parse(self.condition)

@@ -29,7 +29,6 @@ episode (`terminated`, not a success).
 from __future__ import annotations
 
 import math
-import os
 
 import gymnasium as gym
 import mujoco
@@ -45,6 +44,7 @@ from lerobot_condground.core.routing import (
 )
 
 from . import robot
+from .arm_env import ArmEnv
 from .assets import RECEPTACLE_SHAPES
 from .routing_scene import (
     CONTAINER,
@@ -57,7 +57,7 @@ from .routing_scene import (
     geom_labels,
     sample_routing_layout,
 )
-from .scene import FLOOR_THICKNESS, PHYSICS_DT, inside_receptacle
+from .scene import FLOOR_THICKNESS, inside_receptacle
 
 LIFT_HEIGHT = 0.04
 INSPECT_TOLERANCE, INSPECT_HOLD_S = 0.03, 0.5
@@ -162,9 +162,7 @@ class RoutingTracker:
         }
 
 
-class InstrumentRoutingEnv(gym.Env):
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
-
+class InstrumentRoutingEnv(ArmEnv):
     def __init__(
         self,
         subgoal: str = "procedure",
@@ -179,14 +177,9 @@ class InstrumentRoutingEnv(gym.Env):
         render_mode: str | None = "rgb_array",
         fps: int = 20,
     ):
-        from .pickplace_env import check_fps, check_resolution
-
         self.task = ROUTING_TASK  # LeRobot's eval asks sub-envs for it
         self.episodes = parse_episodes(subgoal)
-        check_resolution(observation_height, observation_width)
-        check_fps(fps)
-        if obs_type not in OBS_TYPES:
-            raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
+        self._setup(obs_type, observation_height, observation_width, render_mode, fps)
         if instruction not in INSTRUCTION_FORMS:
             raise ValueError(
                 f"Unknown instruction form {instruction!r}; allowed: {', '.join(INSTRUCTION_FORMS)}"
@@ -195,28 +188,14 @@ class InstrumentRoutingEnv(gym.Env):
             raise ValueError(
                 "segmentation=True and cue=False contradict each other: cue=False sends empty label maps"
             )
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"Unknown render_mode {render_mode!r}; allowed: rgb_array or None")
-        self.obs_type, self.height, self.width = obs_type, observation_height, observation_width
         self.wrist_camera, self.with_destination = wrist_camera, destination
         self.segmentation = segmentation or cue is not None
         self.blank_labels = cue is False
         self.instruction_form = instruction
-        self.render_mode, self.fps = render_mode, fps
-        self.n_substeps = round(1 / (fps * PHYSICS_DT))
-        self.metadata = {**self.metadata, "render_fps": fps}
 
-        low = np.concatenate([robot.JOINT_RANGE[:, 0], [0.0]]).astype(np.float32)
-        high = np.concatenate([robot.JOINT_RANGE[:, 1], [1.0]]).astype(np.float32)
-        self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
-        image = gym.spaces.Box(0, 255, (self.height, self.width, 3), dtype=np.uint8)
         labels = gym.spaces.Box(0, 255, (self.height, self.width), dtype=np.uint8)
-        spaces: dict[str, gym.Space] = {}
-        if obs_type != "agent_pos":
-            spaces["pixels"] = gym.spaces.Dict({"top": image, **({"wrist": image} if wrist_camera else {})})
-        if obs_type != "pixels":
-            spaces["agent_pos"] = gym.spaces.Box(-np.inf, np.inf, (7,), dtype=np.float64)
-        if segmentation:
+        spaces = self._arm_spaces()
+        if self.segmentation:
             spaces["segmentation"] = labels
             if wrist_camera:
                 spaces["segmentation_wrist"] = labels
@@ -224,10 +203,8 @@ class InstrumentRoutingEnv(gym.Env):
             spaces["destination"] = gym.spaces.Box(0, 1, (1,), dtype=np.int64)
         self.observation_space = gym.spaces.Dict(spaces)
 
-        self.model = build_routing_model()
-        self.data = mujoco.MjData(self.model)
-        self._arm_qadr = np.array([self.model.joint(n).qposadr[0] for n in robot.JOINT_NAMES])
-        self._finger_qadr = [self.model.joint(f"{s}_finger").qposadr[0] for s in ("left", "right")]
+        self._bind(build_routing_model())
+        self._finger_qadrs = [self.model.joint(f"{s}_finger").qposadr[0] for s in ("left", "right")]
         self._instrument_qadr = self.model.joint("instrument_free").qposadr[0]
         self._instrument_dofadr = self.model.joint("instrument_free").dofadr[0]
         self.instrument_body = self.model.body("instrument").id
@@ -237,11 +214,9 @@ class InstrumentRoutingEnv(gym.Env):
             adr = self.model.body_geomadr[bid]
             self._finger_of_geom[adr : adr + self.model.body_geomnum[bid]] = code
         self._ik = robot.InverseKinematics(self.model)
-        self._renderer: mujoco.Renderer | None = None
-        self._last_frame = None
         self.episode = self.episodes[0]
         self.layout = sample_routing_layout(0)
-        self._geom_label = geom_labels(self.model, self.layout)
+        self.geom_label = geom_labels(self.model, self.layout)
         self.tracker = RoutingTracker(self, self.episode)
 
     # ------------------------------------------------------------------ gym API
@@ -250,7 +225,7 @@ class InstrumentRoutingEnv(gym.Env):
         layout_seed = int(self.np_random.integers(2**31 - 1))
         self.episode = self.episodes[int(self.np_random.integers(len(self.episodes)))]
         self.layout = sample_routing_layout(layout_seed)
-        self._geom_label = geom_labels(self.model, self.layout)
+        self.geom_label = geom_labels(self.model, self.layout)
         mujoco.mj_resetData(self.model, self.data)
         apply_routing_layout(self.model, self.data, self.layout)
         self._set_start(self.episode)
@@ -259,30 +234,12 @@ class InstrumentRoutingEnv(gym.Env):
         return self._observation(), self._info()
 
     def step(self, action):
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (7,) or not np.all(np.isfinite(action)):
-            raise ValueError(
-                f"Action must be 7 finite numbers (6 joint targets in rad + gripper 0..1); got shape "
-                f"{action.shape} with values {np.array2string(action, precision=3)}"
-            )
-        action = np.clip(action, self.action_space.low, self.action_space.high)
-        self.data.ctrl[:6] = action[:6]
-        self.data.ctrl[6] = action[6] * robot.FINGER_TRAVEL
+        self._apply_action(action)
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
         self.tracker.update()
         success = self.tracker.success
         terminated = success or self.tracker.misrouted
         return self._observation(), float(success), terminated, False, self._info()
-
-    def render(self):
-        if self._last_frame is None:
-            self._last_frame = self._render("top")
-        return self._last_frame
-
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
 
     # ------------------------------------------------------------------ read-outs
     @property
@@ -308,16 +265,6 @@ class InstrumentRoutingEnv(gym.Env):
             {"label": 4, "role": "state_region"},
         ]  # fmt: skip
 
-    def joint_positions(self) -> np.ndarray:
-        return self.data.qpos[self._arm_qadr].copy()
-
-    def gripper_closure(self) -> float:
-        return float(self.data.qpos[self._finger_qadr[0]] / robot.FINGER_TRAVEL)
-
-    def tcp_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        sid = self.model.site("tcp").id
-        return self.data.site_xpos[sid].copy(), self.data.site_xmat[sid].reshape(3, 3).copy()
-
     def instrument_pose(self) -> tuple[np.ndarray, float]:
         """Centre of the handle and the instrument's yaw."""
         quat = self.data.xquat[self.instrument_body]
@@ -327,7 +274,7 @@ class InstrumentRoutingEnv(gym.Env):
         """Which fingers (1 left, 2 right) touch the instrument."""
         n = self.data.ncon
         g1, g2 = self.data.contact.geom1[:n], self.data.contact.geom2[:n]
-        label = self._geom_label
+        label = self.geom_label
         fingers = np.concatenate(
             [self._finger_of_geom[g1][label[g2] == 1], self._finger_of_geom[g2][label[g1] == 1]]
         )
@@ -338,20 +285,10 @@ class InstrumentRoutingEnv(gym.Env):
         base = instrument_yaw + math.pi / 2
         return base + math.pi * round((near - base) / math.pi)
 
-    def render_segmentation(self, camera: str = "top") -> np.ndarray:
-        r = self._get_renderer()
-        r.enable_segmentation_rendering()
-        try:
-            r.update_scene(self.data, camera=camera)
-            seg = r.render()
-        finally:
-            r.disable_segmentation_rendering()
-        ids, types = seg[..., 0], seg[..., 1]
-        labels = np.zeros(ids.shape, dtype=np.uint8)
-        if not self.blank_labels:
-            is_geom = (types == int(mujoco.mjtObj.mjOBJ_GEOM)) & (ids >= 0)
-            labels[is_geom] = self._geom_label[ids[is_geom]]
-        return labels
+    def render_segmentation(self, camera: str = "top", scene_option=None) -> np.ndarray:
+        if self.blank_labels:  # evaluated without the cue: nothing marked
+            return np.zeros((self.height, self.width), dtype=np.uint8)
+        return super().render_segmentation(camera, scene_option)
 
     # ------------------------------------------------------------------ internals
     def _set_start(self, episode: str) -> None:
@@ -382,7 +319,7 @@ class InstrumentRoutingEnv(gym.Env):
         gravity = self.model.opt.gravity.copy()
         self.model.opt.gravity[:] = 0
         jaw = robot.FINGER_TRAVEL - 0.002 - GRASP_WIDTH / 2
-        self.data.qpos[self._finger_qadr] = jaw - 0.001
+        self.data.qpos[self._finger_qadrs] = jaw - 0.001
         mujoco.mj_step(self.model, self.data, nstep=100)
         self.model.opt.gravity[:] = gravity
         mujoco.mj_step(self.model, self.data, nstep=50)
@@ -400,27 +337,8 @@ class InstrumentRoutingEnv(gym.Env):
         self.data.qpos[adr : adr + 7] = [*pos, math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)]
         self.data.qvel[dof : dof + 6] = 0
 
-    def _get_renderer(self) -> mujoco.Renderer:
-        if self._renderer is None:
-            os.environ.setdefault("MUJOCO_GL", "egl")
-            self._renderer = mujoco.Renderer(self.model, self.height, self.width)
-        return self._renderer
-
-    def _render(self, camera: str) -> np.ndarray:
-        r = self._get_renderer()
-        r.update_scene(self.data, camera=camera)
-        return r.render()
-
     def _observation(self) -> dict:
-        obs: dict = {}
-        self._last_frame = None
-        if self.obs_type != "agent_pos":
-            self._last_frame = self._render("top")
-            obs["pixels"] = {"top": self._last_frame}
-            if self.wrist_camera:
-                obs["pixels"]["wrist"] = self._render("wrist")
-        if self.obs_type != "pixels":
-            obs["agent_pos"] = np.concatenate([self.joint_positions(), [self.gripper_closure()]])
+        obs = self._arm_observation()
         if self.segmentation:
             obs["segmentation"] = self.render_segmentation("top")
             if self.wrist_camera:

@@ -19,7 +19,7 @@ class UR3eTwinCameraConfig(CameraConfig):
     fps: int | None = 20
 
     def __post_init__(self):
-        from lerobot_condground.envs.pickplace_env import check_resolution
+        from lerobot_condground.envs.arm_env import check_resolution
 
         if self.camera not in TWIN_CAMERAS:
             raise ValueError(f"ur3e_twin camera={self.camera!r}; allowed: {', '.join(TWIN_CAMERAS)}")

@@ -105,7 +105,7 @@ def test_labels_follow_the_state_and_the_instructions_have_two_forms():
     gid = env.model.geom("mark").id
     env.model.geom_rgba[gid] = STEEL if np.allclose(env.model.geom_rgba[gid], MARK) else MARK
     mujoco.mj_forward(env.model, env.data)
-    after = env._render("top")[region].mean(0)
+    after = env._render_rgb("top")[region].mean(0)
     assert np.abs(before - after).max() > 40
     env.close()
 
@@ -189,7 +189,7 @@ def test_stock_lerobot_train_and_eval_run_the_routing_task(tmp_path):
     assert set(features) == {"observation.images.top", "observation.images.wrist", "observation.state"}
     run_cli(
         "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=condground", "--env.task=InstrumentRouting-v0",
-        "--env.subgoal=route,place", "--env.observation_height=96", "--env.observation_width=128",
+        "--env.subgoal=route,place", "--env.cue=true", "--env.observation_height=96", "--env.observation_width=128",
         "--env.episode_length=10", "--eval.n_episodes=2", "--eval.batch_size=2", f"--output_dir={tmp_path / 'eval'}",
     )  # fmt: skip
     info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
