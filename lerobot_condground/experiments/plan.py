@@ -91,7 +91,7 @@ ROLLOUTS_PER_CORE_MIN = {"cpu": 14.0, "paper": 8.6}
 # 100 clean episodes with labels and video took 395 s on 2 cores; counted as one core's 7.9 s per episode,
 # spread over at most 2 (one recording process; the software renderer's threads are what use the second).
 RECORD_CORE_S_PER_EPISODE = 7.9
-DIAGNOSE_S_PER_PAIR = 15.0  # a guess: one pair took 40 s with the command's start-up (toy run, busy machine)
+DIAGNOSE_S_PER_PAIR = 5.8  # Task 2 standard, 20 pairs at 96x128 in 115 s on one core beside a training
 REPORT_S = 60.0
 
 
