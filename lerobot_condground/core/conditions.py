@@ -101,6 +101,12 @@ PAPER_GRID = tuple(NAMED_CONDITIONS)
 
 
 def check_task(task: str) -> str:
+    """A pick-and-place task: the ones with competitor conditions."""
+    if task == ROUTING_TASK:
+        raise ValueError(
+            f"{task} has no competitor conditions; allowed here: {', '.join(TASKS)}. Evaluate it per subgoal: "
+            f"lerobot-eval --env.type=condground --env.task={task} --env.subgoal=route"
+        )
     if task not in TASKS:
         raise ValueError(f"Unknown task {task!r}; allowed: {', '.join(TASKS)}")
     return task

@@ -195,3 +195,13 @@ def test_stock_lerobot_train_and_eval_run_the_routing_task(tmp_path):
     info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 2
     assert all(r in (0.0, 1.0) for r in info["per_task"][0]["metrics"]["max_rewards"])
+
+
+def test_commands_of_the_condition_grid_point_the_routing_task_to_its_evaluation(tmp_path, capsys):
+    from lerobot_condground.cli import main
+
+    code = main(
+        ["sweep", "--policy.paths=expert", "--env.task=InstrumentRouting-v0", f"--output_dir={tmp_path}"]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and "InstrumentRouting-v0 has no competitor conditions" in err and "--env.subgoal" in err
