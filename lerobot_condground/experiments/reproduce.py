@@ -244,7 +244,13 @@ def run(cfg: ReproduceConfig) -> Path:
                 seconds = round(time.time() - started, 1)
                 _marker(cfg, stage).write_text(
                     json.dumps(
-                        {"command": proc.args, "after": list(stage.after), "seconds": seconds}, indent=1
+                        # The console script by name: the marker is published, this machine's paths are not.
+                        {
+                            "command": [Path(proc.args[0]).name, *proc.args[1:]],
+                            "after": list(stage.after),
+                            "seconds": seconds,
+                        },
+                        indent=1,
                     )
                 )
                 done.add(name)

@@ -1,7 +1,7 @@
 # ruff: noqa: E402, E741, N806, SIM115  (a probe script kept for reference, not package code)
 """Tiny, CPU-only probe of LeRobot 0.6.1 pi05 (no LeRobot files edited, no downloads).
 
-Run:  source /work/main/.venv/bin/activate && HF_HUB_OFFLINE=1 python /tmp/pi05_probe/tiny_pi05.py
+Run:  source .venv/bin/activate && HF_HUB_OFFLINE=1 python docs/design/pi05_probe/tiny_pi05.py
 """
 
 import os
@@ -13,6 +13,7 @@ import contextlib  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
 import shutil  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from unittest import mock  # noqa: E402
@@ -27,7 +28,7 @@ from lerobot.policies.pi05.configuration_pi05 import PI05Config  # noqa: E402
 from lerobot.policies.pi05.modeling_pi05 import PI05Policy  # noqa: E402
 from transformers.models.gemma import modeling_gemma  # noqa: E402
 
-OUT = Path("/tmp/pi05_probe")
+OUT = Path(os.environ.get("PI05_PROBE_DIR", Path(tempfile.gettempdir()) / "pi05_probe"))
 TOK_DIR = OUT / "tokenizer"
 
 # ----------------------------------------------------------------------------------------------
