@@ -39,9 +39,17 @@ COMMANDS = {
         "reproduce",
         "The paper's whole experiment (record, train 4 variants, sweep, diagnose, probe, report), resumable.",
     ),
+    "pi05-start": (
+        "pi05_start",
+        "A pi05 checkpoint (lerobot/pi05_base) as a pi05_grounded starting point for lerobot-train --policy.path.",
+    ),
     "sweep": (
         "sweep",
         "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",
+    ),
+    "subgoals": (
+        "subgoals",
+        "InstrumentRouting-v0 per subgoal under cue / no_cue / explicit (sim, or the UR3e operator-scored).",
     ),
     "probe": (
         "probe",

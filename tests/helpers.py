@@ -35,10 +35,11 @@ def make_checkpoint(
     width: int = 128,
     seed: int = 0,
     policy_type: str = "act_modified",
+    cameras: tuple[str, ...] = ("top",),
 ) -> Path:
     """A small act_modified (or, with policy_type="act", stock ACT) checkpoint with random weights, saved
     the way lerobot-train saves one (config, weights, processors): what the diagnosis commands load.
-    It has not learned anything."""
+    It has not learned anything. Stock ACT reads `cameras` (the routing env renders top and wrist)."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors
@@ -53,8 +54,11 @@ def make_checkpoint(
     from lerobot_condground.policies.act_modified.modeling_act_modified import ACTModifiedPolicy
 
     torch.manual_seed(seed)
+    images = {
+        f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, height, width)) for c in cameras
+    }
     features = {
-        "observation.images.top": PolicyFeature(FeatureType.VISUAL, (3, height, width)),
+        **images,
         "observation.state": PolicyFeature(FeatureType.STATE, (7,)),
         OBS_SEGMENTATION: PolicyFeature(FeatureType.STATE, (height, width)),
         OBS_PHASE: PolicyFeature(FeatureType.STATE, (1,)),
@@ -77,12 +81,12 @@ def make_checkpoint(
         from lerobot.policies.act.configuration_act import ACTConfig
         from lerobot.policies.act.modeling_act import ACTPolicy
 
-        cameras_and_state = {k: features[k] for k in ("observation.images.top", "observation.state")}
+        cameras_and_state = {k: features[k] for k in (*images, "observation.state")}
         policy = ACTPolicy(ACTConfig(input_features=cameras_and_state, **small))
     else:
         policy = ACTModifiedPolicy(ACTModifiedConfig(variant=variant, input_features=features, **small))
     stats = {
-        "observation.images.top": {"mean": torch.full((3, 1, 1), 0.45), "std": torch.full((3, 1, 1), 0.25)},
+        **{k: {"mean": torch.full((3, 1, 1), 0.45), "std": torch.full((3, 1, 1), 0.25)} for k in images},
         "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},
         "action": {
             "mean": torch.tensor([0.0, -1.2, 1.3, -1.6, -1.57, 0.0, 0.3]),

@@ -42,6 +42,7 @@ COMMAND_MODULES = {
     "datasets.record",
     "datasets.augment",
     "evaluation.sweep",
+    "evaluation.subgoals",
     "diagnosis.diagnose",
     "diagnosis.probe",
     "diagnosis.attention",

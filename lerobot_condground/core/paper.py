@@ -66,3 +66,15 @@ PROBE = {"target": (0, 1), "swapped": (35, 91)}
 def probe_range(arm: str, dash: str = "-") -> str:
     low, high = PROBE[arm]
     return f"{low}{dash}{high} %"
+
+
+# The VLA case study (π0.5 fine-tuned for instrument routing): successes / trials over the five subgoals
+# (5 trials each) and over the two routing subgoals (route, place), per `condground subgoals` condition.
+# The paper gives no split per subgoal; it says the remaining subgoals were unaffected, so each of them
+# went 5/5 in every condition (overall minus routing: 15/15).
+SUBGOAL_STUDY = {
+    "cue": {"method": "prompt-trained, with its RGB cue", "overall": (25, 25), "routing": (10, 10)},
+    "no_cue": {"method": "prompt-trained, cue hidden", "overall": (20, 25), "routing": (5, 10)},
+    "explicit": {"method": "regularized, explicit text", "overall": (25, 25), "routing": (10, 10)},
+}
+SUBGOAL_TRIALS = 5

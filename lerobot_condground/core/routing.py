@@ -49,3 +49,36 @@ def parse_episodes(text: str) -> tuple[str, ...]:
             "separated by commas, each once"
         )
     return items
+
+
+# What must be looked at in each procedure step (eq. (1) of `pi05_grounded`): the instrument while it is
+# acquired, its state region while it is inspected, the destination while it is routed and placed, with the
+# other container as the distractor. Retreating and going home have no referent and are not supervised.
+RELEVANT_LABEL = {
+    "approach": INSTRUMENT,
+    "pick": INSTRUMENT,
+    "inspect": STATE_REGION,
+    "route": DESTINATION,
+    "place": DESTINATION,
+}
+DISTRACTOR_LABEL = {"route": OTHER_CONTAINER, "place": OTHER_CONTAINER}
+
+
+def step_masks(segmentation, phase):
+    """(M_phi, M_d) for label maps (B, H, W) and procedure steps (B,) (`observation.phase`), as torch bools.
+    Steps without a referent get an empty M_phi."""
+    import torch
+
+    def table(labels: dict) -> torch.Tensor:
+        return torch.tensor([labels.get(step, -1) for step in STEPS], device=segmentation.device)
+
+    phase = phase.reshape(-1).long().to(segmentation.device)
+    if phase.numel() and not bool(((phase >= 0) & (phase < len(STEPS))).all()):
+        raise ValueError(
+            f"observation.phase holds {sorted(set(phase.tolist()))}; allowed: 0..{len(STEPS) - 1} ({', '.join(STEPS)})"
+        )
+    per_sample = (-1,) + (1,) * (segmentation.ndim - 1)
+    relevant = table(RELEVANT_LABEL)[phase].view(per_sample)
+    distractor = table(DISTRACTOR_LABEL)[phase].view(per_sample)
+    segmentation = segmentation.long()
+    return (segmentation == relevant) & (relevant >= 0), (segmentation == distractor) & (distractor >= 0)

@@ -1,8 +1,9 @@
 """The per-episode results table of the diagnosis commands: its columns, and safe reading and writing.
 
 One row per episode. Identity columns say which policy ran where; outcome columns are what
-`rollout.outcome` reads off the env. Files are written to a temporary name and renamed, so a killed
-process never leaves a half-written table under the real name.
+`rollout.outcome` (pick-and-place) or `rollout.routing_outcome` (InstrumentRouting-v0) reads off the env,
+or what an operator scored on hardware; a column an episode cannot know is null. Files are written to a
+temporary name and renamed, so a killed process never leaves a half-written table under the real name.
 """
 
 from __future__ import annotations
@@ -58,12 +59,18 @@ OUTCOME_COLUMNS = (
     "physics_unstable",
 )
 COLUMNS = IDENTITY_COLUMNS + OUTCOME_COLUMNS
+# Columns added after the first tables were written: an older table lacks them and reads as if they were
+# null. subgoal, destination, route_choice and placed_in are InstrumentRouting-v0's (see
+# envs/routing_env.py); scored_by says who judged success: "env", or "operator" on hardware.
+LATER_COLUMNS = ("subgoal", "destination", "route_choice", "placed_in", "scored_by")
+TABLE_COLUMNS = COLUMNS + LATER_COLUMNS
 METADATA_KEY = b"condground"
 
 
 def write_table(rows: list[dict] | pd.DataFrame, path: Path, metadata: dict | None = None) -> None:
-    frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows, columns=list(COLUMNS))
-    table = pa.Table.from_pandas(frame[list(COLUMNS)], preserve_index=False)
+    frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+    frame = frame.assign(**{c: None for c in LATER_COLUMNS if c not in frame.columns})
+    table = pa.Table.from_pandas(frame[list(TABLE_COLUMNS)], preserve_index=False)
     if metadata is not None:
         table = table.replace_schema_metadata(
             {**(table.schema.metadata or {}), METADATA_KEY: json.dumps(metadata).encode()}
@@ -86,7 +93,7 @@ def read_table(path: Path) -> pd.DataFrame:
     missing = [c for c in COLUMNS if c not in frame.columns]
     if missing:
         raise ValueError(f"Results file {path} lacks columns {missing}; it was not written by condground")
-    return frame
+    return frame.assign(**{c: None for c in LATER_COLUMNS if c not in frame.columns})
 
 
 def read_metadata(path: Path) -> dict:

@@ -4,7 +4,8 @@ The envs of a batch step in lockstep and the policy sees them as one batch, as i
 observation goes through LeRobot's `preprocess_observation`, the env's processor, the policy's
 pre-processor, `select_action` and the post-processors. An env that has finished keeps its last
 observation in the batch (ACT's action queue is per batch) and is not stepped again.
-Each episode ends in one outcome row (see `results.py` for the columns).
+Each episode ends in one outcome row (see `results.py` for the columns). The same loop runs the
+pick-and-place tasks and InstrumentRouting-v0; only the outcome read off the env differs.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from lerobot_condground.core.conditions import ConditionSpec
+from lerobot_condground.core.conditions import ROUTING_TASK, ConditionSpec
 from lerobot_condground.core.configs import EvalEnvConfig
 from lerobot_condground.evaluation.checkpoints import LoadedPolicy
 
@@ -34,6 +35,10 @@ class EnvSpec:
     prompts: bool = True
     fps: int = 20
     episode_length: int = 300
+    # InstrumentRouting-v0 only: the env kwargs of the same names (see envs/routing_env.py).
+    subgoal: str = "procedure"
+    cue: bool | None = None
+    instruction: str = "generic"
 
     @classmethod
     def for_checkpoint(
@@ -57,6 +62,19 @@ class EnvSpec:
         )
 
     def make(self):
+        if self.task == ROUTING_TASK:
+            from lerobot_condground.envs.routing_env import InstrumentRoutingEnv
+
+            return InstrumentRoutingEnv(
+                subgoal=self.subgoal,
+                observation_height=self.observation_height,
+                observation_width=self.observation_width,
+                wrist_camera=self.wrist_camera,
+                cue=self.cue,
+                instruction=self.instruction,
+                render_mode=None,
+                fps=self.fps,
+            )
         from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
         return PickPlaceEnv(
@@ -74,7 +92,10 @@ class EnvSpec:
     def lerobot_config(self):
         from lerobot_condground.envs.configs import CondGroundEnvConfig
 
-        return CondGroundEnvConfig(**asdict(self))
+        fields = asdict(self)
+        if self.task == ROUTING_TASK:  # no prompt crops there; the config refuses them
+            fields["prompts"] = False
+        return CondGroundEnvConfig(**fields)
 
 
 class EnvPool:
@@ -135,6 +156,7 @@ def run_episodes(
     if len(envs) != len(seeds):
         raise ValueError(f"{len(envs)} envs for {len(seeds)} seeds")
     from lerobot_condground.envs.expert import ScriptedExpert
+    from lerobot_condground.envs.routing_expert import RoutingExpert
 
     observations, infos = [], []
     for env, seed in zip(envs, seeds):
@@ -150,7 +172,8 @@ def run_episodes(
             obs[f"prompt_{swap}"] = env.swap_prompt(swap, competitor)
         observations.append(obs)
         infos.append(info)
-    experts = [ScriptedExpert() for _ in envs] if loaded.is_expert else None
+    routing = [env.task == ROUTING_TASK for env in envs]
+    experts = [RoutingExpert() if r else ScriptedExpert() for r in routing] if loaded.is_expert else None
     if experts:
         for expert, env in zip(experts, envs):
             expert.reset(env)
@@ -176,8 +199,8 @@ def run_episodes(
         step += 1
     truncated = active  # still running at the step limit
     return [
-        outcome(env, info, int(n), bool(t), bool(u))
-        for env, info, n, t, u in zip(envs, infos, steps, truncated, unstable)
+        (routing_outcome if r else outcome)(env, info, int(n), bool(t), bool(u))
+        for env, info, n, t, u, r in zip(envs, infos, steps, truncated, unstable, routing)
     ]
 
 
@@ -215,4 +238,31 @@ def outcome(env, info: dict, steps: int, truncated: bool, unstable: bool) -> dic
         "steps": steps,
         "truncated": truncated,
         "physics_unstable": unstable,
+    }
+
+
+def routing_outcome(env, info: dict, steps: int, truncated: bool, unstable: bool) -> dict:
+    """InstrumentRouting-v0's outcome columns: the subgoal's success and where the instrument went. The
+    pick-and-place stage flags and competitor columns stay null: the subgoals are not those stages, and
+    the task has no competitors (the other container is the wrong destination, not a look-alike)."""
+    layout = env.layout
+    instrument = env.instrument_pose()[0]
+    destination = layout.containers[layout.destination]
+    return {
+        "stage": int(info["stage"]),
+        "success": bool(info["is_success"]),
+        "placed_in_competitor_receptacle": info["placed_in"] == layout.other,
+        "target_x": float(instrument[0]),
+        "target_y": float(instrument[1]),
+        "target_z": float(instrument[2]),
+        "receptacle_x": float(destination[0]),
+        "receptacle_y": float(destination[1]),
+        "steps": steps,
+        "truncated": truncated,
+        "physics_unstable": unstable,
+        "subgoal": str(info["subgoal"]),
+        "destination": str(info["destination"]),
+        "route_choice": str(info["route_choice"]),
+        "placed_in": str(info["placed_in"]),
+        "scored_by": "env",
     }

@@ -17,6 +17,8 @@ import pandas as pd
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.proportion import proportion_confint
 
+from lerobot_condground.core.routing import ROUTING_SUBGOALS, SUBGOALS
+
 ALPHA = 0.05
 
 # metric -> (numerator column, denominator column or None for every episode). The stage flags are
@@ -77,6 +79,31 @@ def rate(k: int, n: int, alpha: float = ALPHA) -> dict:
         "low": float(low[0]),
         "high": float(high[0]),
     }
+
+
+# InstrumentRouting-v0's subgoals pooled: the two whose destination depends on the instrument's state, and all.
+SUBGOAL_POOLS = {"routing": ROUTING_SUBGOALS, "overall": SUBGOALS}
+SUBGOAL_TITLES = {
+    **{s: f"{s} (routing)" if s in ROUTING_SUBGOALS else s for s in SUBGOALS},
+    "routing": f"routing: {' + '.join(ROUTING_SUBGOALS)}",
+    "overall": "overall",
+}
+
+
+def subgoal_rates(df: pd.DataFrame, by: Sequence[str] = ("condition",)) -> list[dict]:
+    """Success per InstrumentRouting-v0 subgoal and group of `by`, then per pool of SUBGOAL_POOLS: one dict
+    {**group, subgoal, k, n, rate, low, high} per cell, groups in order of appearance. A subgoal a group did
+    not run has no cell; a pool holds the subgoals of it that were run."""
+    cells = []
+    for key, group in df.groupby(list(by), sort=False, dropna=False):
+        names = dict(zip(by, key if isinstance(key, tuple) else (key,)))
+        for name in (*SUBGOALS, *SUBGOAL_POOLS):
+            rows = group[group["subgoal"].isin(SUBGOAL_POOLS.get(name, (name,)))]
+            if len(rows):
+                cells.append(
+                    {**names, "subgoal": name, **rate(int(_flags(rows, "success").sum()), len(rows))}
+                )
+    return cells
 
 
 def _flags(df: pd.DataFrame, column: str) -> np.ndarray:

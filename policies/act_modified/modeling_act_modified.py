@@ -36,6 +36,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 from torchvision.models._utils import IntermediateLayerGetter
 
+from lerobot_condground.core.grounding import overlaps
 from lerobot_condground.core.labels import (
     OBS_PHASE,
     OBS_PROMPT_OBJECT,
@@ -426,18 +427,6 @@ class ACTModifiedPolicy(ACTPolicy):
         return loss, loss_dict
 
 
-def pooled_mask(mask: Tensor, grid: tuple[int, int]) -> Tensor:
-    """(B, H, W) bool mask -> (B, h, w) pixel coverage per token, scaled so the most covered token is 1.
-    An empty mask stays all zeros."""
-    coverage = F.adaptive_avg_pool2d(mask.float().unsqueeze(1), grid).squeeze(1)
-    return coverage / coverage.amax(dim=(1, 2), keepdim=True).clamp_min(1e-6)
-
-
 def attention_overlaps(attention: Tensor, segmentation: Tensor, phase: Tensor) -> tuple[Tensor, Tensor]:
     """(<A, M_phi>, <A, M_d>) per sample for attention (B, h, w) summing to 1 and a label map (B, H, W)."""
-    relevant, distractors = phase_masks(segmentation, phase)
-    grid = tuple(attention.shape[-2:])
-    return (
-        (attention * pooled_mask(relevant, grid)).sum(dim=(1, 2)),
-        (attention * pooled_mask(distractors, grid)).sum(dim=(1, 2)),
-    )
+    return overlaps(attention, *phase_masks(segmentation, phase))

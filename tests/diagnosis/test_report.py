@@ -370,8 +370,8 @@ def test_missing_inputs_leave_a_note(inputs, tmp_path):
     text = html_path.read_text()
     assert 'id="probe"' in text and 'id="table-1"' not in text and 'id="table-2"' not in text
     assert (
-        text.count('class="note"') == 7
-    )  # table I, stages, 2 difference sections, table II, t-SNE, attention
+        text.count('class="note"') == 8
+    )  # table I, stages, 2 difference sections, subgoals, table II, t-SNE, attention
 
 
 def test_parse_report_args_accepts_repeated_and_comma_separated_dirs():
@@ -395,7 +395,8 @@ def test_refuses_dir_without_known_json(tmp_path):
     (tmp_path / "stray").mkdir()
     (tmp_path / "stray" / "notes.json").write_text("{}")
     with pytest.raises(
-        ValueError, match=r"stray: none of sweep.json, diagnostics.json, probe.json, attention.json"
+        ValueError,
+        match=r"stray: none of sweep.json, subgoals.json, diagnostics.json, probe.json, attention.json",
     ):
         build_report(ReportConfig(input_dir=[str(tmp_path / "stray")], output=str(tmp_path / "r.html")))
     assert not (tmp_path / "r.html").exists()
@@ -549,3 +550,67 @@ def test_a_tampered_manifest_deletes_nothing(inputs, tmp_path):
     with pytest.raises(ValueError, match="is damaged .*not a plain PNG file name"):
         build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(out)))
     assert victim.is_file()
+
+
+def write_subgoals(folder: Path, successes: dict, scored_by: str = "env") -> Path:
+    """A `condground subgoals` directory: successes[condition][subgoal] of 5 trials succeed."""
+    runs, rows = {}, []
+    for condition, per_subgoal in successes.items():
+        ck = checkpoint("act", 0, condition)
+        runs[condition] = {
+            "checkpoint": ck,
+            "trials": 5,
+            "command": ["condground", "subgoals", f"--condition={condition}"],
+        }
+        for index, (subgoal, k) in enumerate(per_subgoal.items()):
+            for trial in range(5):
+                rows.append(
+                    {
+                        "policy_label": ck["label"], "policy_type": ck["policy_type"], "variant": "",
+                        "checkpoint": ck["path"], "checkpoint_hash": ck["hash"], "training_seed": 0,
+                        "task": "InstrumentRouting-v0", "condition": condition, "condition_spec": "{}",
+                        "counterbalanced": False, "eval_seed": 0, "episode": trial, "layout_seed": index * 100 + trial,
+                        "success": trial < k, "steps": 50, "truncated": False, "subgoal": subgoal,
+                        "destination": "left", "scored_by": scored_by,
+                    }
+                )  # fmt: skip
+    folder.mkdir(parents=True)
+    manifest = {"kind": "subgoals", "task": "InstrumentRouting-v0", "mode": "sim", "runs": runs}
+    (folder / "subgoals.json").write_text(json.dumps(manifest))
+    write_table(rows, folder / "results.parquet", metadata=manifest)
+    return folder
+
+
+def test_subgoal_section_tables_each_condition_beside_the_paper(tmp_path):
+    from scipy.stats import binomtest
+
+    all_five = dict.fromkeys(("pick", "inspect", "route", "place", "home"), 5)
+    sim = write_subgoals(tmp_path / "sim", {"cue": all_five, "no_cue": {**all_five, "route": 2, "place": 1}})
+    real = write_subgoals(tmp_path / "real", {"no_cue": {"route": 4}}, scored_by="operator")
+    html_path, md_path = build_report(
+        ReportConfig(input_dir=[str(sim), str(real)], output=str(tmp_path / "r.html"))
+    )
+    table = next(line for line in md_path.read_text().splitlines() if line.startswith("| subgoal |"))
+    assert table == (
+        "| subgoal | this report: cue | this report: no_cue | this report: no_cue (operator-scored) "
+        "| paper: cue | paper: no_cue |"
+    )  # the paper did not run explicit: no column for it
+
+    def cell(k, n):
+        ci = binomtest(k, n).proportion_ci(method="wilson")
+        return f"{100 * k / n:.1f}% [{100 * ci.low:.1f}, {100 * ci.high:.1f}] ({k}/{n})"
+
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in md_path.read_text().splitlines()}
+    assert (
+        rows["route (routing)"]
+        == f"| route (routing) | {cell(5, 5)} | {cell(2, 5)} | {cell(4, 5)} | 10/10 (pooled) | 5/10 (pooled) |"
+    )
+    assert rows["pick"] == f"| pick | {cell(5, 5)} | {cell(5, 5)} | not run | 5/5 | 5/5 |"
+    assert rows["routing: route + place"].endswith(f"| {cell(3, 10)} | {cell(4, 5)} | 10/10 | 5/10 |")
+    assert rows["overall"] == f"| overall | {cell(25, 25)} | {cell(18, 25)} | {cell(4, 5)} | 25/25 | 20/25 |"
+    text = html_path.read_text()
+    assert 'id="subgoals"' in text and "condground subgoals --condition=no_cue" in text
+
+    copy = shutil.copytree(sim, tmp_path / "sim_again")
+    with pytest.raises(ValueError, match=r"trials appear in more than one subgoals directory .*sim"):
+        build_report(ReportConfig(input_dir=[str(sim), str(copy)], output=str(tmp_path / "r2.html")))

@@ -1,4 +1,5 @@
-"""Reading and checking the output directories of `condground sweep`, `diagnose`, `probe` and `attention`.
+"""Reading and checking the output directories of `condground sweep`, `subgoals`, `diagnose`, `probe` and
+`attention`.
 
 Each directory is recognised by the JSON its command wrote; any inconsistency is one ValueError naming the
 directory, raised before anything is written.
@@ -12,11 +13,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from lerobot_condground.core.conditions import ROUTING_TASK
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.evaluation.results import read_metadata, read_table
 
 KIND_FILES = {
     "sweep.json": "sweep",
+    "subgoals.json": "subgoals",
     "diagnostics.json": "diagnose",
     "probe.json": "probe",
     "attention.json": "attention",
@@ -25,12 +28,15 @@ KIND_FILES = {
 # checkpoint with different seed offsets hold different layouts and may be combined.
 COUNTERBALANCED = " (counterbalanced)"
 EPISODE_KEY = ("checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt")
+# One trial of `condground subgoals`: the same weights on the same layout under the same condition and scorer.
+TRIAL_KEY = ("checkpoint_hash", "condition", "subgoal", "layout_seed", "scored_by")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass
 class Inputs:
     results: pd.DataFrame  # every sweep's episodes, with `source` = the input directory
+    subgoals: pd.DataFrame  # every subgoals directory's trials, with `source`
     sources: list[tuple[Path, dict]]  # (directory, its JSON) in the order given, for provenance
     diagnostics: list[tuple[Path, dict]]
     probes: list[tuple[Path, dict]]
@@ -82,6 +88,35 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
     return frame.assign(source=str(folder))
 
 
+def _load_subgoals(folder: Path, manifest: dict) -> pd.DataFrame:
+    path = folder / "results.parquet"
+    if not path.is_file():
+        raise ValueError(f"{folder}: subgoals.json without results.parquet; no trial has finished there")
+    try:
+        frame = read_table(path)
+    except ValueError as err:
+        raise ValueError(f"{folder}: {err}") from None
+    runs = manifest.get("runs")
+    if not isinstance(runs, dict):
+        raise ValueError(f"{folder}: subgoals.json has no runs")
+    problems = []
+    if set(frame["task"]) - {ROUTING_TASK}:
+        problems.append(f"tasks {sorted(set(frame['task']))}, not {ROUTING_TASK}")
+    if frame["subgoal"].isna().any():
+        problems.append("rows without a subgoal")
+    if set(frame["condition"]) - set(runs):
+        problems.append(f"conditions {sorted(set(frame['condition']))} but subgoals.json runs {sorted(runs)}")
+    if problems:
+        raise ValueError(f"{folder}: results.parquet does not match subgoals.json: {'; '.join(problems)}")
+    dup = frame.duplicated(list(TRIAL_KEY), keep=False)
+    if dup.any():
+        example = frame.loc[dup, list(TRIAL_KEY)].iloc[0].to_dict()
+        raise ValueError(
+            f"{folder}: results.parquet holds {int(dup.sum())} rows with a repeated trial, e.g. {example}"
+        )
+    return frame.assign(source=str(folder))
+
+
 def _check_files(folder: Path, rels, what: str) -> None:
     for rel in rels:
         path = folder / str(rel)
@@ -99,10 +134,10 @@ def load_inputs(dirs: list[str]) -> Inputs:
     """Reads and checks every input directory; any inconsistency is one ValueError naming the directory."""
     if not dirs:
         raise ValueError(
-            "No input directories: give --input_dir=DIR (repeatable) with sweep, diagnose, probe or "
-            "attention outputs"
+            "No input directories: give --input_dir=DIR (repeatable) with sweep, subgoals, diagnose, probe "
+            "or attention outputs"
         )
-    frames, sources, diagnostics, probes, attention = [], [], [], [], []
+    frames, subgoals, sources, diagnostics, probes, attention = [], [], [], [], [], []
     seen: set[Path] = set()
     for raw in dirs:
         folder = Path(raw)
@@ -115,7 +150,7 @@ def load_inputs(dirs: list[str]) -> Inputs:
         if not found:
             raise ValueError(
                 f"{folder}: none of {', '.join(KIND_FILES)} found; give the --output_dir of condground "
-                "sweep, diagnose, probe or attention"
+                "sweep, subgoals, diagnose, probe or attention"
             )
         for name, kind in found:
             data = read_json_object(folder / name, "Input")
@@ -124,6 +159,8 @@ def load_inputs(dirs: list[str]) -> Inputs:
             sources.append((folder, data))
             if kind == "sweep":
                 frames.append(_load_sweep(folder, data))
+            elif kind == "subgoals":
+                subgoals.append(_load_subgoals(folder, data))
             elif kind == "diagnose":
                 _check_files(folder, (data.get("figures") or {}).values(), "figure")
                 diagnostics.append((folder, data))
@@ -134,20 +171,24 @@ def load_inputs(dirs: list[str]) -> Inputs:
                 attention.append((folder, data))
     results = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     if len(frames) > 1:
-        _refuse_overlap(results)
-    return Inputs(results, sources, diagnostics, probes, attention)
+        _refuse_overlap(results, EPISODE_KEY, "sweep")
+    trials = pd.concat(subgoals, ignore_index=True) if subgoals else pd.DataFrame()
+    if len(subgoals) > 1:
+        _refuse_overlap(trials, TRIAL_KEY, "subgoals")
+    return Inputs(results, trials, sources, diagnostics, probes, attention)
 
 
-def _refuse_overlap(results: pd.DataFrame) -> None:
-    """The same episode of the same weights in two sweep directories would be counted twice."""
-    per_key = results.groupby(list(EPISODE_KEY), sort=False)["source"].nunique()
+def _refuse_overlap(results: pd.DataFrame, keys: tuple[str, ...], kind: str) -> None:
+    """The same episode of the same weights in two directories would be counted twice."""
+    what = "episodes" if kind == "sweep" else "trials"
+    per_key = results.groupby(list(keys), sort=False)["source"].nunique()
     clash = per_key[per_key > 1]
     if len(clash):
-        key = dict(zip(EPISODE_KEY, clash.index[0], strict=True))
+        key = dict(zip(keys, clash.index[0], strict=True))
         mask = np.logical_and.reduce([results[k] == v for k, v in key.items()])
         folders = sorted(set(results.loc[mask, "source"]))
         raise ValueError(
-            f"{len(clash)} episodes appear in more than one sweep directory ({' and '.join(folders)}), e.g. "
-            f"{key}; give each sweep once, or separate sweeps of the same checkpoints by condition or eval "
+            f"{len(clash)} {what} appear in more than one {kind} directory ({' and '.join(folders)}), e.g. "
+            f"{key}; give each {kind} directory once, or separate runs of the same checkpoints by condition or "
             "seed"
         )

@@ -18,13 +18,17 @@ from typing import ClassVar
 import pandas as pd
 
 from lerobot_condground.core import paper
-from lerobot_condground.core.conditions import PAPER_GRID, TASKS
+from lerobot_condground.core.conditions import PAPER_GRID, ROUTING_TASK, TASKS
+from lerobot_condground.core.routing import ROUTING_SUBGOALS, SUBGOALS
 from lerobot_condground.evaluation.statistics import (
     CELL,
     METRIC_TITLES,
     METRICS,
+    SUBGOAL_POOLS,
+    SUBGOAL_TITLES,
     cell_metrics,
     condition_differences,
+    subgoal_rates,
     variant_differences,
 )
 
@@ -649,6 +653,82 @@ def _section_probe(probes: list[tuple[Path, dict]]) -> Section:
     return section
 
 
+OPERATOR = " (operator-scored)"
+
+
+def _paper_subgoal(condition: str, subgoal: str) -> str:
+    """The paper's count for a row of the subgoal table: it reports all five subgoals and the two routing
+    ones pooled; the others were unaffected, so 5/5 each (overall minus routing is 15/15)."""
+    study = paper.SUBGOAL_STUDY[condition]
+    if subgoal in SUBGOAL_POOLS:
+        k, n = study[subgoal]
+    elif subgoal in ROUTING_SUBGOALS:
+        return "{}/{} (pooled)".format(*study["routing"])
+    else:
+        k = n = paper.SUBGOAL_TRIALS
+    return f"{k}/{n}"
+
+
+def _section_subgoals(trials: pd.DataFrame) -> Section:
+    section = Section(f"VLA case study: success per subgoal ({ROUTING_TASK})")
+    if trials.empty:
+        return section.note(
+            "No subgoal trials among the inputs: `condground subgoals` evaluates each subgoal of "
+            f"{ROUTING_TASK} from its own initial state under the cue, no_cue and explicit conditions."
+        )
+    # Trials scored on the arm are another experiment than the simulated ones: their own columns.
+    trials = trials.assign(
+        arm=trials["condition"] + trials["scored_by"].map(lambda by: OPERATOR if by == "operator" else "")
+    )
+    order = list(paper.SUBGOAL_STUDY)
+    arms = sorted(
+        set(trials["arm"]),
+        key=lambda a: (
+            order.index(a.removesuffix(OPERATOR)) if a.removesuffix(OPERATOR) in order else len(order),
+            a,
+        ),
+    )
+    studied = [c for c in order if c in set(trials["condition"])]
+    by = {(c["subgoal"], c["arm"]): c for c in subgoal_rates(trials, by=("arm",))}
+    rows = []
+    for name in (*SUBGOALS, *SUBGOAL_POOLS):
+        if any((name, arm) in by for arm in arms):
+            ours = [by.get((name, arm)) for arm in arms]
+            rows.append(
+                [
+                    SUBGOAL_TITLES[name],
+                    *[fmt_rate(c["k"], c["n"], c["low"], c["high"]) if c else "not run" for c in ours],
+                    *[_paper_subgoal(condition, name) for condition in studied],
+                ]
+            )
+    policies = "; ".join(
+        f"{arm}: {', '.join(sorted(set(trials.loc[trials['arm'] == arm, 'policy_label'])))}" for arm in arms
+    )
+    section.blocks += [
+        Para(
+            "Success % [95 % Wilson interval] (successes/trials) per subgoal, each from its own initial state; "
+            f"{' and '.join(ROUTING_SUBGOALS)} are the routing subgoals, whose destination depends on the "
+            "instrument's state. "
+            + "; ".join(f"{c}: {study['method']}" for c, study in paper.SUBGOAL_STUDY.items())
+            + f" (the conditions are not equally informed). Policies: {policies}."
+        ),
+        Para(
+            "The paper (π0.5, 5 trials per subgoal and condition) reports the five subgoals and the two routing "
+            "subgoals pooled; a non-routing subgoal's 5/5 follows from its statement that those subgoals were "
+            "unaffected, and a routing subgoal's row shows the pooled route + place count.",
+            note=True,
+        ),
+        Table(
+            "subgoals",
+            "Success per subgoal and condition",
+            ["subgoal", *arms, *studied],
+            rows,
+            groups=[("", 1), ("this report", len(arms)), ("paper", len(studied))],
+        ),
+    ]
+    return section
+
+
 def _versions_text(versions) -> str:
     return "; ".join(f"{k} {v}" for k, v in (versions or {}).items()) or "—"
 
@@ -659,13 +739,25 @@ def _command_text(command) -> str:
     return str(command) if command else "—"
 
 
+def _runs(data: dict) -> list[dict]:
+    """A subgoals directory's runs, one per condition, each with its command and checkpoint."""
+    return list((data.get("runs") or {}).values()) if data.get("kind") == "subgoals" else []
+
+
+def _commands_text(data: dict) -> str:
+    if data.get("kind") == "subgoals":
+        return "\n".join(_command_text(run.get("command")) for run in _runs(data)) or "—"
+    return _command_text(data.get("command"))
+
+
 def _checkpoints_text(data: dict) -> str:
-    if data.get("kind") == "sweep":
+    if data.get("kind") in ("sweep", "subgoals"):
+        checkpoints = [run.get("checkpoint") or {} for run in _runs(data)] or data.get("checkpoints", [])
         return (
             "\n".join(
                 f"{c.get('label')}: {c.get('path')} (hash {c.get('hash')}, "
                 f"training seed {c.get('training_seed')})"
-                for c in data.get("checkpoints", [])
+                for c in checkpoints
             )
             or "—"
         )
@@ -690,7 +782,7 @@ def _section_provenance(inputs: Inputs, cfg: ReportConfig) -> Section:
         [
             str(folder),
             str(d.get("kind")),
-            _command_text(d.get("command")),
+            _commands_text(d),
             _versions_text(d.get("versions")),
             _checkpoints_text(d),
         ]
@@ -744,6 +836,7 @@ def build_document(inputs: Inputs, cfg: ReportConfig) -> Document:
             _section_stages(results, methods, labels),
             _section_condition_differences(results, labels),
             _section_variant_differences(results, labels),
+            _section_subgoals(inputs.subgoals),
             _section_table2(inputs.diagnostics),
             _section_tsne(inputs.diagnostics),
             _section_attention(inputs.attention),

@@ -1,0 +1,107 @@
+"""A starting checkpoint for `lerobot-train --policy.path=DIR`: a pi05 checkpoint (`lerobot/pi05_base`)
+retyped as `pi05_grounded`, with the processors of its variant.
+
+`lerobot-train --policy.path` rebuilds the processors saved beside the weights, not the policy type's
+factory: starting straight from `pi05_base` would train without the cue, instruction and label steps, and
+with the hard-coded PaliGemma tokenizer. DIR holds `config.json` (type `pi05_grounded`, the dataset's
+features), a link to the source's `model.safetensors` (nothing is copied) and processor files that list the
+plugin's steps and the configured tokenizer. Names and shapes of the weights are checked against the
+configuration on the meta device (no memory), so a mismatch is an error now, not after loading.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import tempfile
+from pathlib import Path
+
+import draccus
+import torch
+from safetensors import safe_open
+
+from .configuration_pi05_grounded import PI05GroundedConfig
+from .modeling_pi05_grounded import WEIGHTS, PI05GroundedPolicy, weights_file
+from .processor_pi05_grounded import make_pi05_grounded_pre_post_processors
+
+SOURCE_TYPES = ("pi05", "pi05_grounded")
+
+
+def source_config(source: str, overrides: list[str]) -> PI05GroundedConfig:
+    """The source checkpoint's configuration as `pi05_grounded`, with `--key=value` overrides on top."""
+    from huggingface_hub.constants import CONFIG_NAME
+
+    path = Path(source)
+    if path.is_dir():
+        config_file = path / CONFIG_NAME
+        if not config_file.is_file():
+            raise FileNotFoundError(f"--policy.path={source}: {config_file} is missing")
+    else:
+        from huggingface_hub import hf_hub_download
+
+        try:
+            config_file = Path(hf_hub_download(source, CONFIG_NAME))
+        except Exception as e:
+            raise FileNotFoundError(
+                f"--policy.path={source}: cannot get its {CONFIG_NAME} ({type(e).__name__}); give a local "
+                "checkpoint directory, or download the repository first where the hub is reachable"
+            ) from e
+    raw = json.loads(config_file.read_text())
+    kind = raw.pop("type", None)
+    if kind not in SOURCE_TYPES:
+        raise ValueError(
+            f"--policy.path={source} is a {kind!r} checkpoint; allowed: {', '.join(SOURCE_TYPES)} "
+            "(e.g. lerobot/pi05_base)"
+        )
+    with tempfile.NamedTemporaryFile("w", suffix=".json") as f:
+        json.dump(raw, f)
+        f.flush()
+        config = draccus.parse(PI05GroundedConfig, f.name, args=overrides)
+    # PreTrainedConfig picks a device available here; the checkpoint keeps the source's (or the flag's).
+    if not any(arg.startswith("--device=") for arg in overrides):
+        config.device = raw.get("device")
+    return config
+
+
+def take_dataset_features(config: PI05GroundedConfig, dataset_features: dict) -> None:
+    """The dataset's cameras, state and action replace the source's (pi05_base names other cameras)."""
+    from lerobot.configs.types import FeatureType
+    from lerobot.utils.feature_utils import dataset_to_policy_features
+
+    features = dataset_to_policy_features(dataset_features)
+    config.output_features = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
+    config.input_features = {k: f for k, f in features.items() if k not in config.output_features}
+    config.label_keys = None
+    config.validate_features()
+
+
+def check_weights(config: PI05GroundedConfig, weights: Path) -> None:
+    """Raises unless every tensor of `weights` loads strictly into a policy of `config`."""
+    on_meta = copy.deepcopy(config)
+    on_meta.device = "meta"
+    with torch.device("meta"):
+        policy = PI05GroundedPolicy(on_meta)
+    with safe_open(str(weights), "pt", device="cpu") as f:
+        state = {k: torch.empty(f.get_slice(k).get_shape(), device="meta") for k in f.keys()}  # noqa: SIM118
+    problem = policy.weights_mismatch(policy.prepared_state(state))
+    if problem:
+        raise ValueError(f"{weights} does not fit pi05_grounded with this configuration: {problem}")
+
+
+def write_starting_checkpoint(
+    source: str, overrides: list[str], dataset_meta, output_dir: Path
+) -> PI05GroundedConfig:
+    if output_dir.exists() and any(output_dir.iterdir()):
+        raise FileExistsError(f"--output_dir={output_dir} exists and is not empty; allowed: a new directory")
+    config = source_config(source, overrides)
+    take_dataset_features(config, dataset_meta.features)
+    weights = weights_file(source)
+    check_weights(config, weights)
+    # Built before anything is written: an unreachable tokenizer fails here.
+    pre, post = make_pi05_grounded_pre_post_processors(config, dataset_stats=dataset_meta.stats)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    config.save_pretrained(output_dir)
+    (output_dir / WEIGHTS).symlink_to(weights.resolve())
+    pre.save_pretrained(output_dir)
+    post.save_pretrained(output_dir)
+    return config
