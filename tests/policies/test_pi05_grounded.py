@@ -391,3 +391,34 @@ def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_pat
     rows = pd.read_parquet(subgoals / "results.parquet")
     assert sorted(rows["subgoal"]) == ["place", "route"] and set(rows["policy_type"]) == {"pi05_grounded"}
     assert set(rows["steps"]) <= {3} and not rows["success"].any()
+
+
+@pytest.mark.parametrize("mode", ["train_expert_only", "freeze_vision_encoder", "peft"])
+def test_regularizer_trains_with_pi05s_partial_fine_tuning(tokenizer, mode):
+    import dataclasses
+
+    from lerobot.configs.default import PeftConfig
+
+    cfg = make_config(tokenizer, **({mode: True} if mode != "peft" else {}))
+    policy = make_policy(cfg)
+    pre, _ = make_pi05_grounded_pre_post_processors(cfg, stats())
+    batch = pre(raw_batch())
+    if mode == "peft":
+        cfg.pretrained_path = "pi05_base"  # LeRobot refuses adapters on a policy trained from scratch
+        policy = policy.wrap_with_peft(peft_cli_overrides=dataclasses.asdict(PeftConfig(r=4)))
+    policy.train()
+    loss, info = policy.forward(batch)
+    loss.backward()
+    assert 0 < info["grounding_on_relevant"] < 1
+    grads = {n: p.grad for n, p in policy.named_parameters() if p.requires_grad and p.grad is not None}
+    frozen = [n for n, p in policy.named_parameters() if not p.requires_grad]
+    # LoRA's B starts at zero, so only B has a gradient at first.
+    expert_q = [g for n, g in grads.items() if "gemma_expert" in n and "q_proj" in n and "lora_A" not in n]
+    assert frozen and expert_q and all(g.abs().sum() > 0 for g in expert_q)
+    if mode == "train_expert_only":
+        assert not any("paligemma.model" in n for n in grads)
+    elif mode == "freeze_vision_encoder":
+        assert not any("vision_tower" in n for n in grads)
+        assert any("language_model" in n and "q_proj" in n for n in grads)
+    else:
+        assert any("lora_" in n for n in grads) and all("lora_" in n or "proj" in n for n in grads)
