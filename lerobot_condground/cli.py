@@ -43,6 +43,10 @@ COMMANDS = {
         "pi05_start",
         "A pi05 checkpoint (lerobot/pi05_base) as a pi05_grounded starting point for lerobot-train --policy.path.",
     ),
+    "pi05-bench": (
+        "pi05_bench",
+        "Training-step time and peak memory of the full-size pi05_grounded (regularizer, checkpointing), on a GPU.",
+    ),
     "sweep": (
         "sweep",
         "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",

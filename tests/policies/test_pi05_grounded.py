@@ -422,3 +422,22 @@ def test_regularizer_trains_with_pi05s_partial_fine_tuning(tokenizer, mode):
         assert any("language_model" in n and "q_proj" in n for n in grads)
     else:
         assert any("lora_" in n for n in grads) and all("lora_" in n or "proj" in n for n in grads)
+
+
+def test_pi05_bench_times_every_setting(capsys):
+    from lerobot_condground.bench.pi05 import SETTINGS, Pi05BenchConfig, bench_pi05
+    from lerobot_condground.cli import main
+
+    cfg = Pi05BenchConfig(
+        device="cpu", dtype="float32", batch_sizes=[2], steps=1, rounds=2, image_size=48,
+        image_resolution=RES, chunk_size=CHUNK, tokens=16,
+    )  # fmt: skip
+    with tiny_pi05():
+        results = bench_pi05(cfg)
+    assert results["device"] == "cpu" and 0 < results["parameters"] < 1e6
+    for name in SETTINGS:
+        assert results[f"b2_{name}_step_s"] > 0
+    assert all(results[f"b2_{name}_step_ratio"] > 0 for name in SETTINGS if name != "plain")
+    assert results["select_action_s"] > 0
+    assert main(["pi05-bench", "--batch_sizes=[8,0]"]) == 2
+    assert "--batch_sizes=[8, 0] is not allowed" in capsys.readouterr().err
