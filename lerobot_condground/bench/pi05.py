@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -34,7 +34,7 @@ SETTINGS = {  # name -> (regularizer, gradient checkpointing)
 class Pi05BenchConfig:
     device: str = "auto"
     dtype: str = "bfloat16"
-    batch_sizes: list[int] = None  # default [8, 32]
+    batch_sizes: list[int] = field(default_factory=lambda: [8, 32])
     steps: int = 3  # timed training steps per setting and round
     rounds: int = 2
     image_size: int = 224  # frames as the env renders them (square: π0.5's input size needs no padding)
@@ -43,7 +43,6 @@ class Pi05BenchConfig:
     tokens: int = 200  # tokenizer_max_length
 
     def __post_init__(self):
-        self.batch_sizes = self.batch_sizes or [8, 32]
         check_at_least(self, "", steps=1, rounds=1, image_size=8, image_resolution=8, chunk_size=1, tokens=8)
         if not self.batch_sizes or min(self.batch_sizes) < 1:
             raise ValueError(f"--batch_sizes={self.batch_sizes} is not allowed; allowed: sizes >= 1")
