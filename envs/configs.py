@@ -135,6 +135,18 @@ class CondGroundEnvConfig(EnvConfig):
     def gym_id(self) -> str:
         return f"{GYM_NAMESPACE}/{self.task}"
 
+    def make_env(self, **extra):
+        """The task's env itself, without gymnasium's wrappers (for code that steps it directly: recording,
+        the sweep); `extra` turns on what such a caller needs beyond these settings (labels, no rendering)."""
+        kwargs = {k: v for k, v in self.gym_kwargs.items() if k != "max_episode_steps"} | extra
+        if self.task == ROUTING_TASK:
+            from .routing_env import InstrumentRoutingEnv
+
+            return InstrumentRoutingEnv(**kwargs)
+        from .pickplace_env import PickPlaceEnv
+
+        return PickPlaceEnv(task=self.task, **kwargs)
+
     @property
     def gym_kwargs(self) -> dict:
         if self.task == ROUTING_TASK:

@@ -112,34 +112,12 @@ def dataset_features(env_cfg: CondGroundEnvConfig, video: bool, labels: bool = T
 def make_recording_env(env_cfg: CondGroundEnvConfig, labels: bool = True):
     """The task's env with what the recording writes turned on, and its scripted expert."""
     if env_cfg.task == ROUTING_TASK:
-        from lerobot_condground.envs.routing_env import InstrumentRoutingEnv
         from lerobot_condground.envs.routing_expert import RoutingExpert
 
-        env = InstrumentRoutingEnv(
-            subgoal=env_cfg.subgoal,
-            observation_height=env_cfg.observation_height,
-            observation_width=env_cfg.observation_width,
-            wrist_camera=env_cfg.wrist_camera,
-            segmentation=labels,
-            destination=labels,
-            fps=env_cfg.fps,
-        )
-        return env, RoutingExpert()
+        return env_cfg.make_env(segmentation=labels, destination=labels), RoutingExpert()
     from lerobot_condground.envs.expert import ScriptedExpert
-    from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
-    env = PickPlaceEnv(
-        task=env_cfg.task,
-        condition=env_cfg.condition,
-        counterbalanced=env_cfg.counterbalanced,
-        observation_height=env_cfg.observation_height,
-        observation_width=env_cfg.observation_width,
-        wrist_camera=env_cfg.wrist_camera,
-        segmentation=labels,
-        prompts=labels,
-        fps=env_cfg.fps,
-    )
-    return env, ScriptedExpert()
+    return env_cfg.make_env(segmentation=labels, prompts=labels), ScriptedExpert()
 
 
 def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict:

@@ -41,6 +41,17 @@ class LoadedPolicy:
     def is_expert(self) -> bool:
         return self.policy_type == EXPERT
 
+    def identity(self) -> dict:
+        """The results table's columns that say which checkpoint ran (see `results.py`)."""
+        return {
+            "policy_label": self.label,
+            "policy_type": self.policy_type,
+            "variant": self.variant,
+            "checkpoint": self.path,
+            "checkpoint_hash": self.hash,
+            "training_seed": self.training_seed,
+        }
+
     def describe(self) -> dict:
         return {
             "path": self.path,

@@ -62,32 +62,7 @@ class EnvSpec:
         )
 
     def make(self):
-        if self.task == ROUTING_TASK:
-            from lerobot_condground.envs.routing_env import InstrumentRoutingEnv
-
-            return InstrumentRoutingEnv(
-                subgoal=self.subgoal,
-                observation_height=self.observation_height,
-                observation_width=self.observation_width,
-                wrist_camera=self.wrist_camera,
-                cue=self.cue,
-                instruction=self.instruction,
-                render_mode=None,
-                fps=self.fps,
-            )
-        from lerobot_condground.envs.pickplace_env import PickPlaceEnv
-
-        return PickPlaceEnv(
-            task=self.task,
-            condition=self.condition,
-            counterbalanced=self.counterbalanced,
-            observation_height=self.observation_height,
-            observation_width=self.observation_width,
-            wrist_camera=self.wrist_camera,
-            prompts=self.prompts,
-            render_mode=None,
-            fps=self.fps,
-        )
+        return self.lerobot_config().make_env(render_mode=None)
 
     def lerobot_config(self):
         from lerobot_condground.envs.configs import CondGroundEnvConfig

@@ -312,12 +312,7 @@ def write_tables(root: Path, rows: pd.DataFrame) -> str:
 # ---------------------------------------------------------------- running
 def identity(cfg: SubgoalsConfig, loaded: LoadedPolicy, spec: EnvSpec, trial: Trial) -> dict:
     return {
-        "policy_label": loaded.label,
-        "policy_type": loaded.policy_type,
-        "variant": loaded.variant,
-        "checkpoint": loaded.path,
-        "checkpoint_hash": loaded.hash,
-        "training_seed": loaded.training_seed,
+        **loaded.identity(),
         "task": ROUTING_TASK,
         "condition": cfg.condition,
         "condition_spec": json.dumps({"cue": spec.cue, "instruction": spec.instruction}),

@@ -87,12 +87,7 @@ def make_jobs(
                 "episodes": episodes,
                 "seeds": [layout_seed(seed_offset, unit.eval_seed, e) for e in episodes],
                 "identity": {
-                    "policy_label": loaded.label,
-                    "policy_type": loaded.policy_type,
-                    "variant": loaded.variant,
-                    "checkpoint": loaded.path,
-                    "checkpoint_hash": loaded.hash,
-                    "training_seed": loaded.training_seed,
+                    **loaded.identity(),
                     "task": env.task,
                     "condition": unit.condition,
                     "counterbalanced": env.counterbalanced,
