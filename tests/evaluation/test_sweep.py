@@ -114,6 +114,8 @@ def test_killed_sweep_resumes_without_losing_or_repeating_episodes(tmp_path):
     assert all(p.stat().st_mtime_ns == t for p, t in before.items())  # finished units were not rerun
 
 
+# Ray's start-up makes this the longest test (about 4 min quiet, 9 min beside trainings): `pytest -m slow`.
+@pytest.mark.slow
 def test_parallel_workers_and_ray_give_the_same_rows(tmp_path, tiny_checkpoints):
     runs = {}
     for name, kw in {

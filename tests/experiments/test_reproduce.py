@@ -90,6 +90,8 @@ def _commands(out, key: str) -> list[str]:
     return [line for line in (out / "logs" / f"{key}.log").read_text().splitlines() if line.startswith("$ ")]
 
 
+# A toy run killed and resumed twice (about 3 to 5 min): `pytest -m slow`.
+@pytest.mark.slow
 def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
     out = tmp_path / "repro"
     env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
