@@ -9,7 +9,7 @@ import draccus
 
 @dataclass
 class ReportConfig:
-    # Output directories of `condground sweep`, `diagnose`, `probe` and `attention`, in any mix.
+    # Output directories of `condground sweep`, `diagnose`, `probe`, `attention` and `subgoals`, in any mix.
     # Repeat the flag or separate directories with commas.
     input_dir: list[str] = field(default_factory=list)
     # The HTML file; the Markdown version and its figure folder (FILE_files/) go beside it.
