@@ -360,6 +360,25 @@ def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_pat
     steps = [s["registry_name"] for s in read_json(start / "policy_preprocessor.json")["steps"]]
     assert steps[1:3] == ["condground_decode_labels", "condground_instruction"]
 
+    # A hub id resolves offline from the local cache (the layout `hf download` leaves), as pi05_base would.
+    cache = tmp_path / "hub"
+    repo = cache / "models--local--pi05_tiny"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text("0" * 40)
+    snapshot = repo / "snapshots" / ("0" * 40)
+    snapshot.mkdir(parents=True)
+    for name in ("config.json", "model.safetensors"):
+        (snapshot / name).write_bytes((source / name).read_bytes())
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    from_hub = tmp_path / "start_from_hub"
+    run_cli(
+        "condground", "pi05-start", "--policy.path=local/pi05_tiny", *flags[1:], f"--output_dir={from_hub}"
+    )
+    assert (from_hub / "model.safetensors").resolve() == (snapshot / "model.safetensors").resolve()
+    missing = run_cli("condground", "pi05-start", "--policy.path=local/absent", *flags[1:], f"--output_dir={tmp_path / 'y'}", check=False)  # fmt: skip
+    assert missing.returncode == 2 and "cannot get its config.json" in missing.stderr
+    monkeypatch.delenv("HF_HUB_CACHE")
+
     again = run_cli("condground", "pi05-start", *flags, f"--output_dir={start}", check=False)
     assert again.returncode == 2 and "exists and is not empty" in again.stderr
     wrong = run_cli("condground", "pi05-start", *flags[:-1], "--policy.max_action_dim=16", f"--output_dir={tmp_path / 'x'}", check=False)  # fmt: skip
