@@ -76,12 +76,7 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
         )
     if problems:
         raise ValueError(f"{folder}: results.parquet does not match sweep.json: {'; '.join(problems)}")
-    dup = frame.duplicated(list(EPISODE_KEY), keep=False)
-    if dup.any():
-        example = frame.loc[dup, list(EPISODE_KEY)].iloc[0].to_dict()
-        raise ValueError(
-            f"{folder}: results.parquet holds {int(dup.sum())} rows with a repeated episode, e.g. {example}"
-        )
+    _refuse_repeats(folder, frame, EPISODE_KEY, "episode")
     if grid.get("counterbalanced"):
         # Another scene distribution than the plain condition of the same name: its own rows in every table.
         frame = frame.assign(condition=frame["condition"] + COUNTERBALANCED)
@@ -108,13 +103,17 @@ def _load_subgoals(folder: Path, manifest: dict) -> pd.DataFrame:
         problems.append(f"conditions {sorted(set(frame['condition']))} but subgoals.json runs {sorted(runs)}")
     if problems:
         raise ValueError(f"{folder}: results.parquet does not match subgoals.json: {'; '.join(problems)}")
-    dup = frame.duplicated(list(TRIAL_KEY), keep=False)
-    if dup.any():
-        example = frame.loc[dup, list(TRIAL_KEY)].iloc[0].to_dict()
-        raise ValueError(
-            f"{folder}: results.parquet holds {int(dup.sum())} rows with a repeated trial, e.g. {example}"
-        )
+    _refuse_repeats(folder, frame, TRIAL_KEY, "trial")
     return frame.assign(source=str(folder))
+
+
+def _refuse_repeats(folder: Path, frame: pd.DataFrame, key, what: str) -> None:
+    dup = frame.duplicated(list(key), keep=False)
+    if dup.any():
+        example = frame.loc[dup, list(key)].iloc[0].to_dict()
+        raise ValueError(
+            f"{folder}: results.parquet holds {int(dup.sum())} rows with a repeated {what}, e.g. {example}"
+        )
 
 
 def _check_files(folder: Path, rels, what: str) -> None:
