@@ -371,6 +371,13 @@ def run_on_robot(cfg, loaded: LoadedPolicy, spec: EnvSpec, device: str, todo: li
                     f"The input ended before {title} was scored; the trials scored so far are in "
                     f"{Path(cfg.output_dir) / RESULTS}, and the same command resumes after them"
                 ) from None
+            except KeyboardInterrupt:  # Ctrl-C outside a running trial: the operator ends the session
+                print(
+                    f"\nStopped by Ctrl-C before {title} was scored; the trials scored so far are in "
+                    f"{Path(cfg.output_dir) / RESULTS}, and the same command resumes after them.",
+                    flush=True,
+                )
+                break
             on_rows([{**identity(cfg, loaded, spec, trial), **scored}])
     finally:
         robot.disconnect()
@@ -432,6 +439,9 @@ def run_subgoals(cfg: SubgoalsConfig) -> Path:
                 run_on_robot(cfg, loaded, spec, device, todo, on_rows)
     finally:
         bar.close()
+    if not frames:  # stopped before the first trial was scored
+        print(f"subgoals: no trial scored; nothing written to {root / RESULTS}", flush=True)
+        return root / RESULTS
     results = pd.concat(frames, ignore_index=True)
     print(write_tables(root, results), flush=True)
     print(f"subgoals: {len(results)} trials in {root / RESULTS}; table in {root / TABLE_MD}", flush=True)

@@ -191,6 +191,10 @@ def describe(cfg: ReproduceConfig, stages: list[Stage], done: set[str], cores: i
         f"estimated time left: {_hours(left)} with {cfg.jobs} stage(s) side by side on {cores} core(s) "
         "(rates measured on the 2-core development machine)"
     )
+    if cfg.train.extra_flags:  # the training rates are the preset model's
+        lines.append(
+            f"the training estimates do not account for --train.extra_flags={cfg.train.extra_flags!r}"
+        )
     return "\n".join(lines)
 
 

@@ -251,7 +251,9 @@ OPERATOR_SCRIPT = textwrap.dedent("""
 def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path, checkpoints):
     """Two trials (pick, route) of the cue checkpoint with its cue hidden: the arm goes to each subgoal's
     simulated start pose, the operator presses Enter, Ctrl-C ends the first trial (not the command), an
-    answer that is neither y nor n is asked again, and the scores land in the table."""
+    answer that is neither y nor n is asked again, and the scores land in the table. Ctrl-C at the second
+    trial's score prompt ends the command with the first trial kept; the same command then runs only the
+    second."""
     from lerobot_condground.evaluation.operator_trials import start_states
     from lerobot_condground.evaluation.units import layout_seed
 
@@ -263,19 +265,21 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
     starts = {
         s: start_states(s, [layout_seed(1_000_000, SUBGOALS.index(s), 0)])[0] for s in ("pick", "route")
     }
-    with start_fake_controller(
-        free_loopback_host(), servers=("rtde", "dashboard", "gripper", "script"), actual_q=q0
-    ) as fake:
+    command = [
+        sys.executable, str(script), "subgoals", *ROUTING, f"--policy.path={checkpoints['cue']}",
+        "--condition=no_cue", "--trials=1", "--subgoals=route,pick", "--max_steps=30", "--policy.device=cpu",
+        f"--output_dir={out}", "--robot.type=ur3e", "--robot.connect_timeout_s=60",
+        f"--robot.cameras={{top: {still}, wrist: {still}}}",
+    ]  # fmt: skip
+    poses = {}
+
+    def operate(fake, last_answer: str) -> str:
+        """Plays the operator; `last_answer` is typed at the route trial's score prompt (or Ctrl-C)."""
         proc = subprocess.Popen(
-            [
-                sys.executable, str(script), "subgoals", *ROUTING, f"--policy.path={checkpoints['cue']}",
-                "--condition=no_cue", "--trials=1", "--subgoals=route,pick", "--max_steps=30", "--policy.device=cpu",
-                f"--output_dir={out}", "--robot.type=ur3e", f"--robot.host={fake.host}", "--robot.connect_timeout_s=60",
-                f"--robot.cameras={{top: {still}, wrist: {still}}}",
-            ],
+            [*command, f"--robot.host={fake.host}"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1,
         )  # fmt: skip
-        transcript, poses = [], {}
+        transcript = []
         try:
             for line in proc.stdout:
                 transcript.append(line)
@@ -285,21 +289,33 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
                     proc.stdin.write("\n")
                 elif "Running the policy" in line and "pick up the instrument" in line:
                     proc.send_signal(signal.SIGINT)
-                elif line.startswith("Stopped by Ctrl-C"):
+                elif line.startswith("Stopped by Ctrl-C after"):
                     proc.stdin.write("maybe\ny\n")
                 elif line.startswith("Step limit reached"):
-                    proc.stdin.write("n\n")
+                    if last_answer == "ctrl-c":  # at a prompt, Ctrl-C ends the session, not only the trial
+                        proc.send_signal(signal.SIGINT)
+                    else:
+                        proc.stdin.write(last_answer)
                 proc.stdin.flush()
             proc.wait(timeout=60)
         finally:
             proc.kill()
-        stderr = proc.stderr.read()
-    text = "".join(transcript)
-    assert proc.returncode == 0, text[-3000:] + stderr[-3000:]
+        text = "".join(transcript)
+        assert proc.returncode == 0, text[-3000:] + proc.stderr.read()[-3000:]
+        return text
+
+    with start_fake_controller(
+        free_loopback_host(), servers=("rtde", "dashboard", "gripper", "script"), actual_q=q0
+    ) as fake:
+        stopped = operate(fake, "ctrl-c")
+        assert "Stopped by Ctrl-C before Trial 2/2 (route #1" in stopped, stopped[-3000:]
+        assert list(read_table(out / "results.parquet").subgoal) == ["pick"]
+        text = operate(fake, "n\n")  # the same command scores only what is left
+    assert "2 trials; 1 already done" in text and "pick up the instrument" not in text
     for subgoal, start in starts.items():
         np.testing.assert_allclose(poses[subgoal], start.q, atol=0.02)
     assert f"belongs in the {starts['route'].destination} container" in text
-    assert "Enter closes the gripper" in text and "Please answer y or n." in text
+    assert "Enter closes the gripper" in stopped and "Please answer y or n." in stopped
     rows = read_table(out / "results.parquet").set_index("subgoal")
     assert list(rows.index) == ["pick", "route"]
     assert rows.loc["pick", "success"] and not rows.loc["route", "success"]

@@ -47,7 +47,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     assert "sweep/PickPlaceRandomBin-v0/full" in text and "500 rollouts" in text
     assert "diagnose/PickPlaceRandomBin-v0/augmentation/seed0" in text
     assert "probe/PickPlaceFixedBin-v0/full/seed0" in text and "diagnose/PickPlaceFixedBin" not in text
-    assert "estimated time left:" in text
+    assert "estimated time left:" in text and "extra_flags" not in text
     assert not out.exists()
 
     assert (
@@ -56,6 +56,10 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "12000 rollouts" in text  # 3 training seeds x 20 conditions x 4 x 50
     assert "train/PickPlaceRandomBin-v0/standard/seed2" in text and "5 steps" in text
+
+    flags = "--train.extra_flags=--policy.dim_model=256"
+    assert main(["reproduce", "--preset=cpu", f"--output_dir={out}", "--dry_run=true", flags]) == 0
+    assert "do not account for --train.extra_flags='--policy.dim_model=256'" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
