@@ -45,10 +45,10 @@ lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# One pytest worker per core (at most 4), a test file per worker: the suite keeps one core busy on its
+# One pytest worker per logical CPU (at most 4), a test file per worker: the suite keeps one core busy on its
 # own, and a file's module fixtures (datasets, checkpoints) are built once.
 test: lint
-	$(VENV)/bin/python -m pytest -q --numprocesses=auto --maxprocesses=4 --dist=loadfile --durations=25
+	$(VENV)/bin/python -m pytest -q --numprocesses=logical --maxprocesses=4 --dist=loadfile --durations=25
 
 test-slow: setup
 	$(VENV)/bin/python -m pytest -q -m slow
