@@ -39,9 +39,8 @@ ds = LeRobotDataset(
 idx = torch.randperm(len(ds))[:frames].tolist()
 relevant, distractors = [], []
 for i in range(0, len(idx), 32):
-    batch = pre(
-        torch.utils.data.default_collate([ds[j] for j in idx[i : i + 32]])
-    )  # grad on: copy-paste runs
+    # with gradients on and an action in the batch, the copy-paste step runs as in training
+    batch = pre(torch.utils.data.default_collate([ds[j] for j in idx[i : i + 32]]))
     m_phi, m_d = phase_masks(batch[OBS_SEGMENTATION], batch[OBS_PHASE].reshape(-1).long())
     relevant.append(m_phi.cpu())
     distractors.append(m_d.cpu())

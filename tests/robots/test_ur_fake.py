@@ -551,6 +551,7 @@ def test_control_interface_teach_mode_stop_script_and_disconnect(control_fake):
         time.sleep(0.02)
         res["after_end"] = r.getActualQ() == {hand_q!r}
         c.stopScript()
+        until(lambda: r.getRuntimeState() == 1)  # the receive side sees the stop one RTDE frame later under load
         res.update(running=c.isProgramRunning(), runtime=r.getRuntimeState(), status=c.getRobotStatus())
         t0 = time.monotonic()
         c.disconnect()
