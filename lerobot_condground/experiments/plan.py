@@ -74,20 +74,22 @@ PRESETS: dict[str, dict] = {
     },
 }
 
-# Rates measured on the 2-core development machine, per core, by frame size of the preset's model.
-# Training samples/s: the learning curves (docs/learning-curve, one core per run, two runs side by side) for
-# the CPU configuration; `condground bench`'s policy cost at ACT's default size (2 cores, halved) otherwise.
+# Rates measured on the 2-core development machine (AMD EPYC, AVX2), per core, by frame size of the preset's
+# model. Training samples/s: the cpu reproduction's own runs (docs/reproduction/cpu/stages, one core per run,
+# two runs side by side: standard 38 and 41, full 29 and 24, augmentation 25; augmentation_attention trained as
+# fast as augmentation on the Xeon below); `condground bench`'s policy cost at ACT's default size (2 cores,
+# halved) for the paper preset. An AVX-512/AMX Xeon ran the same cpu stages about twice as fast.
 TRAIN_SAMPLES_PER_CORE_S = {
-    "cpu": {"standard": 41.0, "augmentation": 36.0, "augmentation_attention": 36.0, "full": 34.0},
+    "cpu": {"standard": 39.0, "augmentation": 25.0, "augmentation_attention": 25.0, "full": 26.0},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
 }
 # Two torch threads trained the CPU configuration at 60 samples/s against 41 on one (quickstart, README):
 # a run on t threads goes t**0.55 times as fast.
 THREAD_SCALING = 0.55
-# Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): the learning curves' clean
-# evaluations at 96x128 (50 rollouts in about 3.5 minutes), the sweep benchmark at 240x320 (25.7 per minute
-# for 100-step episodes; up to 300 here).
-ROLLOUTS_PER_CORE_MIN = {"cpu": 14.0, "paper": 8.6}
+# Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): the cpu reproduction's sweeps at
+# 96x128 (500 rollouts of up to 300 steps in 36 to 41 minutes on one worker, one in 67), the sweep
+# benchmark at 240x320 (25.7 per minute for 100-step episodes; up to 300 here).
+ROLLOUTS_PER_CORE_MIN = {"cpu": 13.0, "paper": 8.6}
 # 100 clean episodes with labels and video took 395 s on 2 cores; counted as one core's 7.9 s per episode,
 # spread over at most 2 (one recording process; the software renderer's threads are what use the second).
 RECORD_CORE_S_PER_EPISODE = 7.9
