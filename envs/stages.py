@@ -1,6 +1,8 @@
 """Stage events of one episode, read off contacts and poses and latched once reached.
 
-pick:  the target object held between both fingers (a held competitor is not a pick);
+pick:  the target object held between both fingers (a held competitor is not a pick; a receptacle's wall
+       between the fingers holds nothing: receptacles are fixed, and counting one would report a competitor
+       object grasped and placed in its own receptacle);
 lift:  the held target's bottom above LIFT_HEIGHT;
 place: after pick and lift, the target at rest inside the target receptacle with no finger on it.
 The reward of a step is the stage index reached so far (0..3).
@@ -41,6 +43,7 @@ class StageTracker:
             ] = code
         self.body_of_label = {e.label: model.body(entity_body_name(e.label)).id for e in layout.entities}
         self.receptacles = [e for e in layout.entities if e.asset.role == "receptacle"]
+        self.objects = {e.label for e in layout.entities if e.asset.role == "object"}
         self.reset()
 
     def reset(self) -> None:
@@ -64,7 +67,7 @@ class StageTracker:
                 ]
             )
             touching[side] = set(labels[labels > 0].tolist())
-        held = touching[1] & touching[2]
+        held = touching[1] & touching[2] & self.objects
         self.held = min(held) if held else 0
         target_touched = 1 in touching[1] or 1 in touching[2]
         if self.held:

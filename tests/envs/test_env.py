@@ -1,10 +1,12 @@
+import math
+
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
 import lerobot_condground  # noqa: F401
-from lerobot_condground.envs.assets import COLORS
+from lerobot_condground.envs.assets import COLORS, RECEPTACLE_SHAPES, WALL_THICKNESS
 from lerobot_condground.envs.expert import ScriptedExpert, run_expert_episode
 from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
@@ -86,6 +88,39 @@ def test_holding_a_competitor_is_not_a_pick_and_is_reported():
     assert info["grasped_first"] == competitor.label and info["grasped_first_match"] == "color"
     assert info["grasped_competitor"] == competitor.label
     assert info["stage"] == 0 and not info["pick"]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_receptacle_wall_between_the_fingers_is_no_grasp(seed):
+    """Steer the expert's grasp onto a competitor receptacle's wall, fingers on either side of it: it held
+    nothing (counting it once reported a competitor grasped and placed in its own receptacle)."""
+    env = PickPlaceEnv(task="PickPlaceFixedBin-v0", condition="receptacle_shape_1", obs_type="agent_pos")
+    obs, _ = env.reset(seed=seed)
+    rec = next(e for e in env.layout.entities if e.asset.role == "receptacle" and e.match == "shape")
+    shape = RECEPTACLE_SHAPES[rec.asset.shape]
+    normal = math.radians(shape.normals_deg[0]) + rec.yaw
+    reach = shape.apothems[0] + WALL_THICKNESS / 2
+    wall = np.array([rec.xy[0] + reach * math.cos(normal), rec.xy[1] + reach * math.sin(normal), 0.02])
+    real_pose = env.entity_pose
+    env.entity_pose = (
+        lambda label: (wall.copy(), np.array([1.0, 0, 0, 0])) if label == 1 else real_pose(label)
+    )
+    expert = ScriptedExpert()
+    expert._grasp_yaw = lambda _: normal + math.pi / 2  # the fingers close along the wall's normal
+    expert.reset(env)
+    finger_sides = set()
+    for _ in range(80):
+        obs, _, _, _, info = env.step(expert.act(obs))
+        g1, g2 = env.data.contact.geom1[: env.data.ncon], env.data.contact.geom2[: env.data.ncon]
+        for finger, other in ((g1, g2), (g2, g1)):
+            sides = env.tracker.finger_of_geom[finger]
+            finger_sides |= set(sides[(env.tracker.geom_label[other] == rec.label) & (sides > 0)].tolist())
+        if expert.phase == "transport":
+            break
+    assert finger_sides == {1, 2}, "both fingers should have touched the wall"
+    assert info["grasped_first"] == 0 and info["grasped_competitor"] == 0
+    assert info["competitor_location"] == "none" and info["stage"] == 0
+    env.close()
 
 
 def test_segmentation_masks_cover_the_entities_they_name():
