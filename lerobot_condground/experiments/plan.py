@@ -78,7 +78,7 @@ PRESETS: dict[str, dict] = {
 # model. Training samples/s: the cpu reproduction's own runs (docs/reproduction/cpu/stages, one core per run,
 # two runs side by side: standard 38 and 41, full 29 and 24, augmentation 25; augmentation_attention trained as
 # fast as augmentation on the Xeon below); `condground bench`'s policy cost at ACT's default size (2 cores,
-# halved) for the paper preset. An AVX-512/AMX Xeon ran the same cpu stages about twice as fast.
+# halved) for the paper preset. An AVX-512/AMX Xeon trained the cpu model about twice as fast (recorded 1.3x).
 TRAIN_SAMPLES_PER_CORE_S = {
     "cpu": {"standard": 39.0, "augmentation": 25.0, "augmentation_attention": 25.0, "full": 26.0},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
