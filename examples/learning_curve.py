@@ -95,7 +95,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--csv_dir", type=Path, required=True)
-    parser.add_argument("--suffix", default="", help="run-name suffix (learning_curve.sh: _demos<DEMOS>)")
+    parser.add_argument(
+        "--suffix", default="", help="run-name suffix (learning_curve.sh: _demos<DEMOS>, _<H>x<W>)"
+    )
     parser.add_argument("runs", nargs="+", help="TASK:VARIANT[:FLAG,...] as given to learning_curve.sh")
     args = parser.parse_args()
     args.csv_dir.mkdir(parents=True, exist_ok=True)

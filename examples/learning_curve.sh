@@ -13,6 +13,8 @@
 # finished evaluations and runs that had their MINUTES, and resumes the others from their last checkpoint.
 # DEMOS clean demonstrations per task (default 100); other counts record into $OUT/data<DEMOS> (a rerun
 # with more resumes the recording) and name their runs <task>_<variant>[_<flags>]_demos<DEMOS>.
+# SIZE="H W" frames (default: the configuration's); another size records into $OUT/data[<DEMOS>]_<H>x<W>
+# and appends _<H>x<W> to the run names.
 set -euo pipefail
 OUT=${OUT:-outputs/learning-curve}
 RUNS=${RUNS:-"PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard"}
@@ -25,10 +27,12 @@ TRAIN=${TRAIN:-condground train}
 CSV_DIR=${CSV_DIR:-docs/learning-curve}
 export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 WANDB_MODE=disabled
 read -r -a TRAIN_FLAGS <<< "$(python -m lerobot_condground.core.training)"
-SIZE=$(python -c "from lerobot_condground.core.training import CPU_FRAME_SIZE as s; print(s[0], s[1])")
+CPU_SIZE=$(python -c "from lerobot_condground.core.training import CPU_FRAME_SIZE as s; print(s[0], s[1])")
+SIZE=${SIZE:-$CPU_SIZE}
 
 DATA=$OUT/data; SUFFIX=
 [ "$DEMOS" = 100 ] || { DATA=$OUT/data$DEMOS; SUFFIX=_demos$DEMOS; }
+[ "$SIZE" = "$CPU_SIZE" ] || { DATA=${DATA}_${SIZE/ /x}; SUFFIX=${SUFFIX}_${SIZE/ /x}; }
 # A run named NAME (TASK:VARIANT[:FLAGS]@NAME) is <task>_<variant>_<NAME>; otherwise its spec names it.
 name() {
   local spec=${1%%@*} tail=

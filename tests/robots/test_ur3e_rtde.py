@@ -208,6 +208,7 @@ def action(q, gripper=0.0) -> dict:
     return dict(zip(MOTOR_NAMES, [*map(float, q), float(gripper)], strict=True))
 
 
+@pytest.mark.realtime
 def test_servoj_stream_interpolates_within_limits_and_a_stall_stops_it(controller):
     """Through the real RTDEControlInterface: 500 Hz servoJ set points between 20 Hz targets, the speed
     limit on every set point, the configured lookahead/gain, and servoStop two control periods after the
@@ -228,7 +229,7 @@ def test_servoj_stream_interpolates_within_limits_and_a_stall_stops_it(controlle
         stop = next(e for e in log if e["cmd"] == "servo_stop")
         t = np.array([e["t"] for e in servo])
         setpoints = np.array([e["q"] for e in servo])
-        assert 350 < len(servo) / (t[-1] - t[0]) < 600  # the servo rate
+        assert 350 < 1 / np.median(np.diff(t)) < 600  # the servo rate
         assert np.abs(np.diff(setpoints, axis=0)).max() <= 2.0 * 0.002 * 1.05  # velocity limit per tick
         assert state["servo_lookahead"] == pytest.approx(0.1) and state["servo_gain"] == pytest.approx(500)
         assert setpoints[-1][0] == pytest.approx(q[0], abs=1e-6)  # the last target was reached
