@@ -6,11 +6,14 @@ when `<output_dir>/stages/<stage>.json` is there; it is written only after the c
 killed run repeats at most the stages in flight, and those resume themselves: a recording from its last
 episode, a training from its last checkpoint, a sweep from its finished units; diagnose, probe and report
 rewrite their own files. `reproduce.json` pins the settings that shape results: another setting on the same
-directory is refused before any work starts.
+directory is refused before any work starts. Runners started on one directory share its stages: a stage runs
+under a lock (`<output_dir>/locks/<stage>.lock`) that its process holds until it exits, so a second runner
+leaves it to the first and waits for its marker, and takes it over if the first died before finishing it.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -147,6 +150,18 @@ def _is_done(cfg: ReproduceConfig, stage: Stage) -> bool:
     return path.exists() and read_json_object(path, "Stage marker").get("after") == list(stage.after)
 
 
+def _claim(cfg: ReproduceConfig, stage: Stage) -> int | None:
+    """The stage's lock, or None while another runner's stage process holds it. flock's lock belongs to the
+    open file: the stage's process inherits it, so it outlives a runner killed hard until the stage exits."""
+    fd = os.open(Path(cfg.output_dir) / "locks" / f"{stage.key}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
 def _log(cfg: ReproduceConfig, stage: Stage) -> Path:
     return Path(cfg.output_dir) / "logs" / f"{stage.key}.log"
 
@@ -211,7 +226,7 @@ def run(cfg: ReproduceConfig) -> Path:
     if cfg.dry_run:
         return Path(cfg.output_dir)
     out = Path(cfg.output_dir)
-    for sub in ("stages", "logs"):
+    for sub in ("stages", "logs", "locks"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     if not (out / MANIFEST).exists():
         (out / MANIFEST).write_text(json.dumps({"settings": cfg.pinned(), "versions": versions()}, indent=2))
@@ -224,7 +239,8 @@ def run(cfg: ReproduceConfig) -> Path:
         "MKL_NUM_THREADS": str(share),
     }
     todo = [s for s in stages if s.name not in done]
-    running: dict[str, tuple[Stage, subprocess.Popen, float]] = {}
+    running: dict[str, tuple[Stage, subprocess.Popen, float, int]] = {}
+    elsewhere: set[str] = set()  # stages another runner on this directory is running
     total = sum(s.estimate_s for s in stages)
     bar = tqdm(total=round(total), unit="s", desc="reproduce", disable=not cfg.progress, smoothing=0.05,
                bar_format="{desc}: {percentage:3.0f}% |{bar}| {elapsed} elapsed, ETA {remaining} {postfix}")  # fmt: skip
@@ -234,11 +250,12 @@ def run(cfg: ReproduceConfig) -> Path:
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
         while todo or running:
-            for name, (stage, proc, started) in list(running.items()):
+            for name, (stage, proc, started, lock) in list(running.items()):
                 if proc.poll() is None:
                     continue
                 del running[name]
                 if proc.returncode != 0:
+                    os.close(lock)
                     tail = _log(cfg, stage).read_text(errors="replace").splitlines()[-40:]
                     raise StageFailedError(
                         f"stage {name} failed (exit {proc.returncode}); the end of its log {_log(cfg, stage)}:\n"
@@ -257,12 +274,35 @@ def run(cfg: ReproduceConfig) -> Path:
                         indent=1,
                     )
                 )
+                os.close(lock)  # after the marker: a runner that takes the lock next sees the stage done
                 done.add(name)
                 finished += stage.estimate_s
                 bar.write(f"done: {name} ({_hours(time.time() - started)})")
+            for stage in [s for s in todo if s.name in elsewhere and _is_done(cfg, s)]:
+                todo.remove(stage)
+                elsewhere.discard(stage.name)
+                done.add(stage.name)
+                finished += stage.estimate_s
+                bar.write(f"done elsewhere: {stage.name}")
             for stage in [s for s in todo if all(a in done for a in s.after)]:
                 if len(running) >= cfg.jobs:
                     break
+                lock = _claim(cfg, stage)
+                if lock is None:
+                    if stage.name not in elsewhere:
+                        elsewhere.add(stage.name)
+                        bar.write(
+                            f"wait: {stage.name} runs in another `condground reproduce` on this directory"
+                        )
+                    continue
+                if _is_done(cfg, stage):  # finished by another runner since this one looked
+                    os.close(lock)
+                    elsewhere.discard(stage.name)
+                    todo.remove(stage)
+                    done.add(stage.name)
+                    finished += stage.estimate_s
+                    continue
+                elsewhere.discard(stage.name)
                 todo.remove(stage)
                 _prepare(cfg, stage)
                 args = command(cfg, stage, share)
@@ -270,18 +310,21 @@ def run(cfg: ReproduceConfig) -> Path:
                 with _log(cfg, stage).open("a") as log:
                     log.write(f"$ {' '.join(args)}\n")
                     log.flush()
-                    proc = subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT)
-                running[stage.name] = (stage, proc, time.time())
-            if not running and todo:
+                    proc = subprocess.Popen(
+                        args, env=env, stdout=log, stderr=subprocess.STDOUT, pass_fds=(lock,)
+                    )
+                running[stage.name] = (stage, proc, time.time(), lock)
+            if not running and not elsewhere and todo:
                 raise RuntimeError(f"stages {[s.name for s in todo]} read stages that are not planned")
-            bar.n = round(finished + sum(s.estimate_s * _fraction(cfg, s) for s, _, _ in running.values()))
-            bar.set_postfix_str(", ".join(running), refresh=True)
+            bar.n = round(finished + sum(s.estimate_s * _fraction(cfg, s) for s, *_ in running.values()))
+            bar.set_postfix_str(", ".join([*running, *(f"{n} (elsewhere)" for n in elsewhere)]), refresh=True)
             time.sleep(1.0)
     finally:
-        for _, proc, _ in running.values():
+        for _, proc, *_ in running.values():
             proc.terminate()
-        for _, proc, _ in running.values():
+        for _, proc, _, lock in running.values():
             proc.wait()
+            os.close(lock)
         bar.close()
     report = out / "report" / "report.html"
     print(f"reproduce: all {len(stages)} stages done; report {report}", flush=True)

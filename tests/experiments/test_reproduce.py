@@ -1,10 +1,13 @@
 """`condground reproduce`: the plan, its refusals, and a toy-size run killed mid-stage and resumed."""
 
+import contextlib
 import json
 import os
 import pathlib
+import queue
 import signal
 import subprocess
+import threading
 import time
 
 import pandas as pd
@@ -180,6 +183,66 @@ def test_a_terminated_run_takes_its_stages_with_it_and_a_failed_stage_is_one_mes
     assert "no_such_field" in second.stderr  # the end of the stage's own log says why
     assert "Traceback" not in second.stderr.split("the end of its log")[0]
     assert (out / "stages" / "datasets__PickPlaceRandomBin-v0.json").is_file()  # kept for the retry
+
+
+class _Lines:
+    """A runner's output line by line, with a deadline: a runner that prints nothing must not hang the test."""
+
+    def __init__(self, proc: subprocess.Popen):
+        self.proc, self.lines = proc, queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def wait_for(self, text: str, timeout: float = 180) -> None:
+        deadline = time.time() + timeout
+        while True:
+            try:
+                line = self.lines.get(timeout=max(0.0, deadline - time.time()))
+            except queue.Empty:
+                raise AssertionError(f"the runner printed no {text!r} within {timeout} s") from None
+            assert line is not None, f"the runner exited (code {self.proc.wait()}) without printing {text!r}"
+            if text in line:
+                return
+
+
+def test_two_runners_on_one_directory_share_its_stages_and_a_dead_runners_stage_is_taken_over(tmp_path):
+    out = tmp_path / "repro"
+    flags = [
+        f"--output_dir={out}", "--tasks=PickPlaceRandomBin-v0", "--train.variants=standard",
+        "--record.episodes=4", "--progress=false",
+    ]  # fmt: skip
+    env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
+
+    def runner():
+        return subprocess.Popen(
+            [str(BIN / "condground"), "reproduce", *flags], env=env, stdout=subprocess.PIPE, text=True,
+            start_new_session=True,
+        )  # fmt: skip
+
+    first = second = runner()
+    try:
+        _Lines(first).wait_for("start: datasets/PickPlaceRandomBin-v0")
+        second = runner()
+        lines = _Lines(second)
+        lines.wait_for("wait: datasets/PickPlaceRandomBin-v0 runs in another", timeout=60)
+        recording = _processes_naming(f"--dataset.root={out}/datasets/PickPlaceRandomBin-v0")
+        assert len(recording) == 1  # the second runner left the stage to the first
+        os.kill(first.pid, signal.SIGKILL)  # the runner dies; the recording it started goes on
+        first.wait()
+        # Only once the orphaned recording ended (its lock with it) does the second runner take the stage.
+        lines.wait_for("start: datasets/PickPlaceRandomBin-v0")
+        assert len(_commands(out, "datasets__PickPlaceRandomBin-v0")) == 2
+        log = (out / "logs" / "datasets__PickPlaceRandomBin-v0.log").read_text()
+        assert log.rindex("$ ") > log.index("expert success:")  # the first recording had finished before
+    finally:
+        for proc in (first, second):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def test_the_report_is_rebuilt_when_the_plan_grew(tmp_path):
