@@ -162,6 +162,14 @@ def _claim(cfg: ReproduceConfig, stage: Stage) -> int | None:
     return fd
 
 
+def _done_elsewhere(stage: Stage, todo: list[Stage], elsewhere: set[str], done: set[str]) -> float:
+    """Books a stage another runner finished; returns its estimate for the progress bar."""
+    todo.remove(stage)
+    elsewhere.discard(stage.name)
+    done.add(stage.name)
+    return stage.estimate_s
+
+
 def _log(cfg: ReproduceConfig, stage: Stage) -> Path:
     return Path(cfg.output_dir) / "logs" / f"{stage.key}.log"
 
@@ -279,10 +287,7 @@ def run(cfg: ReproduceConfig) -> Path:
                 finished += stage.estimate_s
                 bar.write(f"done: {name} ({_hours(time.time() - started)})")
             for stage in [s for s in todo if s.name in elsewhere and _is_done(cfg, s)]:
-                todo.remove(stage)
-                elsewhere.discard(stage.name)
-                done.add(stage.name)
-                finished += stage.estimate_s
+                finished += _done_elsewhere(stage, todo, elsewhere, done)
                 bar.write(f"done elsewhere: {stage.name}")
             for stage in [s for s in todo if all(a in done for a in s.after)]:
                 if len(running) >= cfg.jobs:
@@ -297,10 +302,7 @@ def run(cfg: ReproduceConfig) -> Path:
                     continue
                 if _is_done(cfg, stage):  # finished by another runner since this one looked
                     os.close(lock)
-                    elsewhere.discard(stage.name)
-                    todo.remove(stage)
-                    done.add(stage.name)
-                    finished += stage.estimate_s
+                    finished += _done_elsewhere(stage, todo, elsewhere, done)
                     continue
                 elsewhere.discard(stage.name)
                 todo.remove(stage)
