@@ -254,10 +254,14 @@ def run(cfg: ReproduceConfig) -> Path:
                bar_format="{desc}: {percentage:3.0f}% |{bar}| {elapsed} elapsed, ETA {remaining} {postfix}")  # fmt: skip
     finished = sum(s.estimate_s for s in stages if s.name in done)
     # `kill` (SIGTERM) would end this process without its `finally`, orphaning the running stages, which a
-    # rerun would then race in the same directories.
-    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+    # rerun would then race in the same directories. The exit waits for the loop's next turn: raised inside
+    # Popen, it would orphan a stage started but not yet in `running`.
+    terminated: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: terminated.append(signum))
     try:
         while todo or running:
+            if terminated:
+                sys.exit(128 + terminated[0])
             for name, (stage, proc, started, lock) in list(running.items()):
                 if proc.poll() is None:
                     continue

@@ -235,6 +235,9 @@ def test_two_runners_on_one_directory_share_its_stages_and_a_dead_runners_stage_
         first.wait()
         # Only once the orphaned recording ended (its lock with it) does the second runner take the stage.
         lines.wait_for("start: datasets/PickPlaceRandomBin-v0")
+        deadline = time.time() + 30  # the runner prints its start line just before it logs the command
+        while len(_commands(out, "datasets__PickPlaceRandomBin-v0")) < 2 and time.time() < deadline:
+            time.sleep(0.1)
         assert len(_commands(out, "datasets__PickPlaceRandomBin-v0")) == 2
         log = (out / "logs" / "datasets__PickPlaceRandomBin-v0.log").read_text()
         assert log.rindex("$ ") > log.index("expert success:")  # the first recording had finished before
