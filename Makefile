@@ -46,8 +46,9 @@ lint: setup
 	$(VENV)/bin/ruff format --check .
 
 # One pytest worker per logical CPU (at most 4), a test file per worker: the suite keeps one core busy on its
-# own, and a file's module fixtures (datasets, checkpoints) are built once. Wall-clock timing checks across
-# processes (marked realtime) run afterwards on a quiet machine: beside a training they measure the load.
+# own, and a file's module fixtures (datasets, checkpoints) are built once. Wall-clock rate checks (marked
+# realtime: the real-time twin, streams across processes) run afterwards on a quiet machine: beside a
+# training they measure the load.
 test: lint
 	$(VENV)/bin/python -m pytest -q --numprocesses=logical --maxprocesses=4 --dist=loadfile --durations=25 \
 		-m "not slow and not realtime"

@@ -70,6 +70,7 @@ def episodes(root, repo_id):
     return ds, [np.flatnonzero(frames["episode_index"] == e) for e in range(ds.meta.total_episodes)], frames
 
 
+@pytest.mark.realtime  # the real-time twin records at 20 fps of wall time: beside other tests it drops frames
 def test_lerobot_record_with_expert_teleop_on_the_twin(tmp_path):
     """Stock lerobot-record, headless, real-time twin: one expert demonstration per episode, each from a
     fresh scene, and the same dataset features as a hardware recording."""
