@@ -11,7 +11,10 @@ in the robot's base frame).
 from __future__ import annotations
 
 import contextlib
+import os
+import select
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -101,11 +104,31 @@ def interrupt_sets(event: threading.Event):
         signal.signal(signal.SIGINT, previous)
 
 
+def read_line(prompt: str) -> str:
+    """`input(prompt)` whose Ctrl-C is never lost. From a pipe (a script or a test playing the operator),
+    `input` writes the prompt and then blocks in read(); a SIGINT that lands between the two only sets
+    Python's flag, and its KeyboardInterrupt waits for the next line. Waiting in short selects returns to
+    Python often enough to raise it. Bytes are read one at a time, so nothing past the line is consumed."""
+    if sys.stdin.isatty():
+        return input(prompt)
+    print(prompt, end="", flush=True)
+    fd, line = sys.stdin.fileno(), bytearray()
+    while True:
+        if not select.select([fd], [], [], 0.2)[0]:
+            continue
+        byte = os.read(fd, 1)
+        if byte in (b"", b"\n"):
+            if not byte and not line:
+                raise EOFError
+            return line.decode(errors="replace")
+        line += byte
+
+
 def ask(prompt: str, answers: dict[str, object]):
     """The operator's answer; asked again until it is one of `answers`. End of input stops the command
     (EOFError), with what was scored so far already written."""
     while True:
-        text = input(prompt).strip().lower()
+        text = read_line(prompt).strip().lower()
         if text in answers:
             return answers[text]
         print(f"Please answer {' or '.join(answers)}.", flush=True)
@@ -181,7 +204,7 @@ def operator_trial(
     _hold(robot, np.array([state[name] for name in MOTOR_NAMES[:6]]), 0.0, GRIP_S)
     robot.move_to(start.q)
     print(f"Set up: {start.setup()}", flush=True)
-    input("Press Enter to start the trial (Ctrl-C ends it early)... ")
+    read_line("Press Enter to start the trial (Ctrl-C ends it early)... ")
     if start.grip:
         _hold(robot, start.q, start.grip, GRIP_S)
     steps, interrupted = run_policy_on_robot(robot, loaded, device, start.task(form), max_steps, blank_masks)

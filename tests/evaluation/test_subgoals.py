@@ -8,6 +8,8 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -280,6 +282,8 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1,
         )  # fmt: skip
         transcript = []
+        watchdog = threading.Timer(300, proc.kill)  # a command stuck at a prompt fails the test, not CI
+        watchdog.start()
         try:
             for line in proc.stdout:
                 transcript.append(line)
@@ -299,6 +303,7 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
                 proc.stdin.flush()
             proc.wait(timeout=60)
         finally:
+            watchdog.cancel()
             proc.kill()
         text = "".join(transcript)
         assert proc.returncode == 0, text[-3000:] + proc.stderr.read()[-3000:]
@@ -324,3 +329,35 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
     assert set(rows.scored_by) == {"operator"} and rows.stage.isna().all() and rows.placed_in.isna().all()
     assert rows.loc["route", "destination"] == starts["route"].destination
     assert f"| overall | {cell_text(1, 2)} |" in text
+
+
+def test_ctrl_c_at_a_prompt_is_never_lost_whichever_thread_takes_the_signal():
+    """The kernel may hand a process's SIGINT to any of its threads (policy, camera and tqdm threads run
+    beside the prompt). Python's `input` from a pipe then blocks in read() with the KeyboardInterrupt
+    pending until a line comes (seen as a hung test when the signal landed just before the read). Here the
+    signal goes to a helper thread while the operator types nothing: the prompt must still end at once."""
+    script = textwrap.dedent(
+        """
+        import signal, threading, time
+        from lerobot_condground.evaluation.operator_trials import ask
+
+        def interrupt():
+            time.sleep(1.0)
+            signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # to this thread, not the main one
+
+        threading.Thread(target=interrupt, daemon=True).start()
+        ask("Did it succeed? [y/n] ", {"y": True, "n": False})
+        """
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )  # stdin stays open and empty: the operator never answers
+    started = time.monotonic()
+    try:
+        proc.wait(timeout=30)  # not communicate(): it would close stdin, and end of input ends the prompt too
+    except subprocess.TimeoutExpired:
+        pytest.fail("Ctrl-C at the prompt was lost: the command still waited for input 30 s later")
+    finally:
+        proc.kill()
+    err = proc.stderr.read()
+    assert b"KeyboardInterrupt" in err and time.monotonic() - started < 30, err[-2000:]
