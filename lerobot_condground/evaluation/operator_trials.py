@@ -106,9 +106,10 @@ def interrupt_sets(event: threading.Event):
 
 def read_line(prompt: str) -> str:
     """`input(prompt)` whose Ctrl-C is never lost. From a pipe (a script or a test playing the operator),
-    `input` writes the prompt and then blocks in read(); a SIGINT that lands between the two only sets
-    Python's flag, and its KeyboardInterrupt waits for the next line. Waiting in short selects returns to
-    Python often enough to raise it. Bytes are read one at a time, so nothing past the line is consumed."""
+    `input` writes the prompt and then blocks in read(); a SIGINT taken after Python's last check on that
+    way, or by another thread, only sets Python's flag, and its KeyboardInterrupt waits for the next line.
+    Waiting in short selects returns to Python often enough to raise it. Bytes are read one at a time, so
+    nothing past the line is consumed."""
     if sys.stdin.isatty():
         return input(prompt)
     print(prompt, end="", flush=True)

@@ -250,6 +250,13 @@ OPERATOR_SCRIPT = textwrap.dedent("""
 """)
 
 
+def default_sigint() -> None:
+    """Ctrl-C as a terminal gives it. A shell starts background jobs (`make test &`) with SIGINT ignored,
+    their children inherit that, and Python then installs no KeyboardInterrupt: the operator's Ctrl-C
+    would do nothing."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path, checkpoints):
     """Two trials (pick, route) of the cue checkpoint with its cue hidden: the arm goes to each subgoal's
     simulated start pose, the operator presses Enter, Ctrl-C ends the first trial (not the command), an
@@ -278,7 +285,7 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
     def operate(fake, last_answer: str) -> str:
         """Plays the operator; `last_answer` is typed at the route trial's score prompt (or Ctrl-C)."""
         proc = subprocess.Popen(
-            [*command, f"--robot.host={fake.host}"],
+            [*command, f"--robot.host={fake.host}"], preexec_fn=default_sigint,
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1,
         )  # fmt: skip
         transcript = []
@@ -332,10 +339,11 @@ def test_operator_scored_trials_on_the_arm_through_the_fake_controller(tmp_path,
 
 
 def test_ctrl_c_at_a_prompt_is_never_lost_whichever_thread_takes_the_signal():
-    """The kernel may hand a process's SIGINT to any of its threads (policy, camera and tqdm threads run
-    beside the prompt). Python's `input` from a pipe then blocks in read() with the KeyboardInterrupt
-    pending until a line comes (seen as a hung test when the signal landed just before the read). Here the
-    signal goes to a helper thread while the operator types nothing: the prompt must still end at once."""
+    """Python runs a signal's handler only between bytecodes of the main thread. A SIGINT that arrives while
+    the main thread is in C code on its way into read() (`input` writing the prompt, as a scripted operator
+    answers the line before it), or that a helper thread takes (policy, camera and tqdm threads run beside
+    the prompt), leaves `input` from a pipe blocked with the KeyboardInterrupt pending until a line comes.
+    Here the signal goes to a helper thread while the operator types nothing: the prompt must end at once."""
     script = textwrap.dedent(
         """
         import signal, threading, time
@@ -350,7 +358,11 @@ def test_ctrl_c_at_a_prompt_is_never_lost_whichever_thread_takes_the_signal():
         """
     )
     proc = subprocess.Popen(
-        [sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        [sys.executable, "-c", script],
+        preexec_fn=default_sigint,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
     )  # stdin stays open and empty: the operator never answers
     started = time.monotonic()
     try:
