@@ -12,8 +12,12 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from lerobot_condground.core.ur3e import MAX_JOINT_VELOCITY, SERVO_MODES, servo_setpoint
+
 from . import robot
 from .scene import MAX_RENDER_HEIGHT, MAX_RENDER_WIDTH, PHYSICS_DT
+
+SERVO_MAX_STEP = MAX_JOINT_VELOCITY * PHYSICS_DT
 
 MIN_RENDER_SIDE = 64
 # "agent_pos" renders nothing: for expert checks and physics benchmarks.
@@ -38,15 +42,24 @@ def check_fps(fps: int) -> None:
         raise ValueError(f"Control rate fps={fps!r} is not allowed; allowed: divisors of 500 from 5 to 100")
 
 
+def check_servo(servo: str) -> None:
+    if servo not in SERVO_MODES:
+        raise ValueError(f"Unknown servo mode {servo!r}; allowed: {', '.join(SERVO_MODES)}")
+
+
 class ArmEnv(gym.Env):
     """Action: 6 joint position targets (rad) + gripper command (0 open .. 1 closed)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
-    def _setup(self, obs_type: str, height: int, width: int, render_mode: str | None, fps: int) -> None:
+    def _setup(
+        self, obs_type: str, height: int, width: int, render_mode: str | None, fps: int, servo: str
+    ) -> None:
         """Checks and keeps the settings every task has; called first in a task's `__init__`."""
         check_resolution(height, width)
         check_fps(fps)
+        check_servo(servo)
+        self.servo = servo
         if obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if render_mode not in (None, "rgb_array"):
@@ -97,8 +110,9 @@ class ArmEnv(gym.Env):
         self._arm_qadr = np.array([model.joint(n).qposadr[0] for n in robot.JOINT_NAMES])
         self._finger_qadr = model.joint("left_finger").qposadr[0]
 
-    def _apply_action(self, action) -> None:
-        """Checks the action and sets the servo targets (clipped to the joint ranges)."""
+    def _actuate(self, action) -> None:
+        """Checks the action (joint targets are clipped to the joint ranges) and runs one control period of
+        physics toward it, the servos fed as `self.servo` says."""
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (7,) or not np.all(np.isfinite(action)):
             raise ValueError(
@@ -106,8 +120,17 @@ class ArmEnv(gym.Env):
                 f"{action.shape} with values {np.array2string(action, precision=3)}"
             )
         action = np.clip(action, self.action_space.low, self.action_space.high)
-        self.data.ctrl[:6] = action[:6]
         self.data.ctrl[6] = action[6] * robot.FINGER_TRAVEL
+        if self.servo == "direct":
+            self.data.ctrl[:6] = action[:6]
+            mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+            return
+        start, low, high = self.data.ctrl[:6].copy(), robot.JOINT_RANGE[:, 0], robot.JOINT_RANGE[:, 1]
+        for k in range(1, self.n_substeps + 1):  # one set point per physics step: the servo rate is 500 Hz
+            self.data.ctrl[:6] = servo_setpoint(
+                self.data.ctrl[:6], start, action[:6], k / self.n_substeps, SERVO_MAX_STEP, low, high
+            )
+            mujoco.mj_step(self.model, self.data)
 
     def render(self):
         if self._last_frame is None:

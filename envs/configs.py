@@ -30,6 +30,9 @@ class CondGroundEnvConfig(EnvConfig):
     cue (InstrumentRouting-v0): true sends the destination masks the `condground_rgb_cue` step draws,
         false sends empty ones (the cue hidden); unset sends none.
     instruction (InstrumentRouting-v0): the task strings' form, generic or explicit.
+    servo: interpolated (each joint target reached over one control period at no more than the UR3e's
+        rated joint speeds, as the arm's servoj stream and the twin do) or direct (the target set at once;
+        the behaviour of runs made before this setting existed).
     """
 
     task: str | None = "PickPlaceRandomBin-v0"
@@ -49,6 +52,7 @@ class CondGroundEnvConfig(EnvConfig):
     subgoal: str = "procedure"
     cue: bool | None = None
     instruction: str = "generic"
+    servo: str = "interpolated"
     render_mode: str = "rgb_array"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
@@ -64,6 +68,8 @@ class CondGroundEnvConfig(EnvConfig):
 
     def __post_init__(self):
         # Bad names and sizes fail here, when the command line is parsed, before any work starts.
+        from lerobot_condground.core.ur3e import SERVO_MODES
+
         from .arm_env import OBS_TYPES, check_resolution
 
         check_env_task(self.task)
@@ -100,6 +106,8 @@ class CondGroundEnvConfig(EnvConfig):
         if self.prompts is None:
             self.prompts = not routing
         check_resolution(self.observation_height, self.observation_width)
+        if self.servo not in SERVO_MODES:
+            raise ValueError(f"--env.servo={self.servo!r} is not allowed; allowed: {', '.join(SERVO_MODES)}")
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if self.episode_length < 1:
@@ -160,6 +168,7 @@ class CondGroundEnvConfig(EnvConfig):
                 "instruction": self.instruction,
                 "render_mode": self.render_mode,
                 "fps": self.fps,
+                "servo": self.servo,
                 "max_episode_steps": self.episode_length,
             }
         return {
@@ -172,5 +181,6 @@ class CondGroundEnvConfig(EnvConfig):
             "prompts": self.prompts,
             "render_mode": self.render_mode,
             "fps": self.fps,
+            "servo": self.servo,
             "max_episode_steps": self.episode_length,
         }

@@ -53,10 +53,11 @@ class PickPlaceEnv(ArmEnv):
         prompts: bool = False,
         render_mode: str | None = "rgb_array",
         fps: int = DEFAULT_FPS,
+        servo: str = "interpolated",
     ):
         check_task(task)
         self.condition = ConditionSpec.parse(condition)
-        self._setup(obs_type, observation_height, observation_width, render_mode, fps)
+        self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo)
         check_fits(task, self.condition, counterbalanced)
         self.task = task
         self.counterbalanced = counterbalanced
@@ -97,9 +98,8 @@ class PickPlaceEnv(ArmEnv):
         return self._observation(), self._info()
 
     def step(self, action):
-        self._apply_action(action)
         resets_before = self._divergence_resets()
-        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        self._actuate(action)
         # MuJoCo answers a diverging simulation by resetting the state in place; the episode cannot go
         # on from there, so it is truncated and flagged instead of continuing from a teleported scene.
         unstable = self._divergence_resets() > resets_before

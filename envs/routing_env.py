@@ -176,10 +176,11 @@ class InstrumentRoutingEnv(ArmEnv):
         instruction: str = "generic",
         render_mode: str | None = "rgb_array",
         fps: int = 20,
+        servo: str = "interpolated",
     ):
         self.task = ROUTING_TASK  # LeRobot's eval asks sub-envs for it
         self.episodes = parse_episodes(subgoal)
-        self._setup(obs_type, observation_height, observation_width, render_mode, fps)
+        self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo)
         if instruction not in INSTRUCTION_FORMS:
             raise ValueError(
                 f"Unknown instruction form {instruction!r}; allowed: {', '.join(INSTRUCTION_FORMS)}"
@@ -234,8 +235,7 @@ class InstrumentRoutingEnv(ArmEnv):
         return self._observation(), self._info()
 
     def step(self, action):
-        self._apply_action(action)
-        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        self._actuate(action)
         self.tracker.update()
         success = self.tracker.success
         terminated = success or self.tracker.misrouted

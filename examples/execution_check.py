@@ -17,13 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
+from clean_sweep import clean_sweep
 
-from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import cell_metrics, paired_difference
 
 # name -> config changes; ACT requires n_action_steps == 1 with temporal ensembling.
@@ -45,22 +43,7 @@ def variant_checkpoint(source: Path, out: Path, changes: dict) -> Path:
 
 
 def sweep(checkpoint: Path, task: str, episodes: int, out: Path) -> pd.DataFrame:
-    if not (out / "results.parquet").exists():
-        subprocess.run(
-            [
-                str(Path(sys.executable).parent / "condground"),
-                "sweep",
-                f"--policy.paths={checkpoint}",
-                f"--env.task={task}",
-                "--sweep.conditions=clean",
-                "--eval.seeds=1",
-                f"--eval.n_episodes={episodes}",
-                f"--output_dir={out}",
-                "--progress=false",
-            ],
-            check=True,
-        )
-    return read_table(out / "results.parquet").sort_values("layout_seed", ignore_index=True)
+    return clean_sweep(checkpoint, task, out, "--eval.seeds=1", f"--eval.n_episodes={episodes}")
 
 
 def main() -> None:

@@ -82,6 +82,8 @@ class EvalEnvConfig:
     observation_width: int | None = None
     episode_length: int = 300
     fps: int = 20
+    # How joint targets reach the simulated servos: interpolated (as the UR3e) or direct (runs made before).
+    servo: str = "interpolated"
 
 
 @dataclass

@@ -32,3 +32,23 @@ HOME_QPOS = np.array([0.0, -1.75, 1.9, -1.72, -1.5708, 0.0])
 # Robotiq 2F-85-like jaw: 85 mm stroke, each finger travels half of it.
 GRIPPER_STROKE = 0.085
 FLANGE_TO_TCP = 0.155  # flange to the middle of the finger pads
+
+# The UR3e's rated joint speeds (rad/s; Universal Robots' e-Series data sheet: 180 deg/s at base, shoulder and
+# elbow, 360 deg/s at the wrists). The simulated arm's servos keep to them; the hardware path defaults to
+# lower limits of its own (`--robot.max_joint_velocity`).
+MAX_JOINT_VELOCITY = np.array([math.pi] * 3 + [2 * math.pi] * 3)
+
+# How the simulated arm's position servos take a joint target. `interpolated`: as the UR3e's servoj stream
+# (and the twin's ServoLoop), the set point moves along the line to the target over one control period,
+# no faster than MAX_JOINT_VELOCITY. `direct`: the target is the set point at once and the torque-limited
+# servos chase it as fast as they can (a jump between two action chunks can throw the cube off the table);
+# what every run made before this setting existed measured.
+SERVO_MODES = ("interpolated", "direct")
+
+
+def servo_setpoint(setpoint, start, goal, fraction: float, max_step, low, high) -> np.ndarray:
+    """The next servo set point: `fraction` of the way along the line from `start` to `goal` (a policy target
+    interpolated over one control period), at most `max_step` from the last set point, within the joint
+    limits. What a UR's servoj stream does between two policy steps."""
+    target = start + fraction * (goal - start)
+    return np.clip(setpoint + np.clip(target - setpoint, -max_step, max_step), low, high)

@@ -49,7 +49,10 @@ PROVENANCE_ENV_KEYS = (
     "observation_width",
     "wrist_camera",
     "subgoal",
+    "servo",
 )
+# What a provenance written before a setting existed recorded with.
+PROVENANCE_ENV_BEFORE = {"servo": "direct"}
 
 
 @dataclass
@@ -167,9 +170,10 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         mismatches += [
             f"feature {key}" for key in sorted(set(info["features"]) - set(features) - set(DEFAULT_FEATURES))
         ]
-        for key in ("task", "condition", "counterbalanced", "subgoal"):
-            if previous.get("env", {}).get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
-                mismatches.append(f"env.{key} {previous['env'][key]!r} != {getattr(cfg.env, key)!r}")
+        recorded = {**PROVENANCE_ENV_BEFORE, **previous["env"]} if "env" in previous else {}
+        for key in ("task", "condition", "counterbalanced", "subgoal", "servo"):
+            if recorded.get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
+                mismatches.append(f"env.{key} {recorded[key]!r} != {getattr(cfg.env, key)!r}")
         if mismatches:
             raise ValueError(
                 f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "

@@ -349,6 +349,7 @@ def run_attention(cfg: AttentionConfig) -> Path:
         "task": spec.task,
         "condition": spec.condition,
         "counterbalanced": spec.counterbalanced,
+        "servo": spec.servo,
         "seed": opts.seed,
         "head": target.head,
         "layer": target.layer,

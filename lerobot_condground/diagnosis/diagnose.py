@@ -530,6 +530,7 @@ def run_diagnose(cfg: DiagnoseConfig) -> Path:
         "reference_condition": reference_condition,
         "distractor_condition": distractor_condition,
         "counterbalanced": reference_spec.counterbalanced,
+        "servo": reference_spec.servo,
         "observation_height": reference_spec.observation_height,
         "observation_width": reference_spec.observation_width,
         "pairs": len(seeds),

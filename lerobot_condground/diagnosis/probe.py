@@ -116,6 +116,7 @@ def run_probe(cfg: ProbeConfig) -> Path:
         "role": cfg.probe.role,
         "match": cfg.probe.match,
         "condition": condition,
+        "servo": cfg.env.servo,
         "selection": column,
         "episodes": cfg.probe.episodes,
         "target": rate(int(target.sum()), len(target)),

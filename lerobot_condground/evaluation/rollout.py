@@ -35,6 +35,7 @@ class EnvSpec:
     prompts: bool = True
     fps: int = 20
     episode_length: int = 300
+    servo: str = "interpolated"
     # InstrumentRouting-v0 only: the env kwargs of the same names (see envs/routing_env.py).
     subgoal: str = "procedure"
     cue: bool | None = None
@@ -59,6 +60,7 @@ class EnvSpec:
             prompts=loaded.needs_prompts if prompts is None else prompts,
             fps=env.fps,
             episode_length=env.episode_length,
+            servo=env.servo,
         )
 
     def make(self):

@@ -226,7 +226,11 @@ def make_run(cfg: SubgoalsConfig, loaded: LoadedPolicy, subgoals: list[str], spe
     """What pins one condition's trials: a rerun with other values would not continue the same trials."""
     env = {k: getattr(spec, k) for k in ("cue", "instruction", "fps")}
     if cfg.robot is None:
-        env |= {"observation_height": spec.observation_height, "observation_width": spec.observation_width}
+        env |= {
+            "observation_height": spec.observation_height,
+            "observation_width": spec.observation_width,
+            "servo": spec.servo,
+        }
     return {
         "checkpoint": loaded.describe(),
         "subgoals": subgoals,

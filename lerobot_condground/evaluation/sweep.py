@@ -139,6 +139,7 @@ def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[Loa
         "seed_offset": cfg.eval.seed_offset,
         "episode_length": cfg.env.episode_length,
         "fps": cfg.env.fps,
+        "servo": cfg.env.servo,
         "observation_height": cfg.env.observation_height,
         "observation_width": cfg.env.observation_width,
     }

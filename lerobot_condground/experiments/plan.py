@@ -16,6 +16,7 @@ from lerobot_condground.core.conditions import TASKS, check_task
 from lerobot_condground.core.configs import check_at_least, usable_cores
 from lerobot_condground.core.paper import METHODS, TABLE2_COLUMN
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
+from lerobot_condground.core.ur3e import SERVO_MODES
 
 VARIANT_ORDER = ("standard", "full", "augmentation", "augmentation_attention")
 
@@ -142,11 +143,19 @@ class ProbeSettings:
 
 
 @dataclass
+class EnvSettings:
+    # How joint targets reach the simulated servos, in the recordings and every evaluation: interpolated
+    # (as the UR3e) or direct (reproductions made before this setting existed).
+    servo: str = "interpolated"
+
+
+@dataclass
 class ReproduceConfig:
     preset: str = "cpu"
     output_dir: str = "outputs/reproduce"
     # Tasks, separated by commas, in the order they run.
     tasks: str | None = None
+    env: EnvSettings = field(default_factory=EnvSettings)
     record: RecordSettings = field(default_factory=RecordSettings)
     train: TrainSettings = field(default_factory=TrainSettings)
     eval: EvalSettings = field(default_factory=EvalSettings)
@@ -173,6 +182,10 @@ class ReproduceConfig:
                 setattr(owner, name, value)
         for task in self.task_list():
             check_task(task)
+        if self.env.servo not in SERVO_MODES:
+            raise ValueError(
+                f"--env.servo={self.env.servo!r} is not allowed; allowed: {', '.join(SERVO_MODES)}"
+            )
         self.variant_list()
         check_at_least(self.record, "record.", episodes=1, observation_height=1, observation_width=1)
         check_at_least(self.train, "train.", seeds=1, steps=1, batch_size=1, save_freq=1, num_workers=0)

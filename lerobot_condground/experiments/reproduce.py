@@ -32,6 +32,8 @@ from lerobot_condground.core.provenance import versions
 from lerobot_condground.experiments.plan import ReproduceConfig, Stage, checkpoint_dir, makespan, plan
 
 MANIFEST = "reproduce.json"
+# What a manifest written before a setting existed ran with.
+SETTINGS_BEFORE = {"env": {"servo": "direct"}}
 LOG_STEP = re.compile(r"\bstep:(\d+(?:\.\d+)?)([KMB]?)\b")
 
 
@@ -52,7 +54,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
     if stage.kind == "record":
         return [
             _script("condground"), "record", f"--env.task={task}", "--env.condition=clean",
-            f"--env.observation_height={cfg.record.observation_height}",
+            f"--env.servo={cfg.env.servo}", f"--env.observation_height={cfg.record.observation_height}",
             f"--env.observation_width={cfg.record.observation_width}",
             f"--dataset.repo_id=local/{task}", f"--dataset.root={here}",
             f"--dataset.num_episodes={cfg.record.episodes}", "--progress=false",
@@ -76,14 +78,18 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         return [
             _script("condground"), "sweep", f"--policy.paths={','.join(map(str, checkpoints))}",
             f"--env.task={task}", f"--env.counterbalanced={str(counterbalanced).lower()}",
-            f"--env.episode_length={cfg.eval.episode_length}",
+            f"--env.servo={cfg.env.servo}", f"--env.episode_length={cfg.eval.episode_length}",
             f"--sweep.conditions={cfg.eval.counterbalanced if counterbalanced else cfg.eval.conditions}",
             f"--eval.seeds={cfg.eval.seeds}", f"--eval.n_episodes={cfg.eval.n_episodes}",
             f"--eval.batch_size={cfg.eval.batch_size}", f"--workers={share}", f"--output_dir={here}",
             "--progress=false",
         ]  # fmt: skip
     if stage.kind in ("diagnose", "probe"):
-        common = [f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}", f"--env.task={task}"]
+        common = [
+            f"--policy.path={checkpoint_dir(cfg, task, variant, seed)}",
+            f"--env.task={task}",
+            f"--env.servo={cfg.env.servo}",
+        ]
         if stage.kind == "diagnose":
             specific = [
                 f"--diagnose.pairs={cfg.diagnose.pairs}",
@@ -116,6 +122,7 @@ def check_same_settings(cfg: ReproduceConfig) -> None:
     settings = cfg.pinned()
     if path.exists():
         previous = read_json_object(path, "Reproduction manifest").get("settings", {})
+        previous.setdefault("env", SETTINGS_BEFORE["env"])
         diffs = _differences(previous, settings)
         if diffs:
             raise ValueError(

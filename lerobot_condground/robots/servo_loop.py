@@ -15,6 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
+from lerobot_condground.core.ur3e import servo_setpoint
+
 from .safety import check_safety_mode
 
 
@@ -123,11 +125,12 @@ class ServoLoop:
             self.stop()
             self.state.streaming, self.state.stalls = False, self._stalls
             return self.state
-        s = min(max((now - self._t_command) / self.control_period, 0.0), 1.0)
-        goal = self._from + s * (self._to - self._from)
-        step_max = self.max_joint_velocity * self.servo_period
-        self._setpoint = np.clip(
-            self._setpoint + np.clip(goal - self._setpoint, -step_max, step_max),
+        self._setpoint = servo_setpoint(
+            self._setpoint,
+            self._from,
+            self._to,
+            min(max((now - self._t_command) / self.control_period, 0.0), 1.0),
+            self.max_joint_velocity * self.servo_period,
             self.joint_min,
             self.joint_max,
         )

@@ -34,6 +34,8 @@ def test_bench_json_reports_every_figure():
         "env_steps_per_s",
         "env_steps_per_s_with_segmentation",
         "env_steps_per_s_expert",
+        "env_steps_per_s_expert_servo_direct",
+        "servo_interpolated_over_direct_ratio",
         "record_frames_per_s",
     ):
         assert result[key] > 0, key

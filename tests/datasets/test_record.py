@@ -1,3 +1,4 @@
+import json
 import os
 import signal
 import subprocess
@@ -99,6 +100,12 @@ def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
         "already holds a dataset recorded differently" in bad.stderr
         and "env.condition 'clean' != 'full_mixed'" in bad.stderr
     )
+    # A dataset recorded before the servo setting existed holds the targets-set-at-once expert's motion.
+    provenance = read_json(root / RECORD_FILE)
+    assert provenance["env"].pop("servo") == "interpolated"
+    (root / RECORD_FILE).write_text(json.dumps(provenance))
+    bad = run_cli("condground", "record", *common, "--dataset.num_episodes=3", check=False)
+    assert bad.returncode != 0 and "env.servo 'direct' != 'interpolated'" in bad.stderr, bad.stderr
     assert LeRobotDataset("local/resume", root=root).meta.total_episodes == 2
 
 

@@ -154,6 +154,7 @@ def test_segmentation_masks_cover_the_entities_they_name():
         (dict(observation_width=32), "Image width 32 cannot be rendered"),
         (dict(fps=33), "Control rate fps=33 is not allowed"),
         (dict(obs_type="state"), "Unknown obs_type 'state'"),
+        (dict(servo="fast"), "Unknown servo mode 'fast'; allowed: interpolated, direct"),
     ],
 )
 def test_bad_construction_is_refused_with_the_value_named(kwargs, fragment):
@@ -202,3 +203,33 @@ def test_a_diverging_simulation_truncates_the_episode_with_a_flag():
     env.data.qvel[-1] = 1e30  # what a blown-up solver leaves behind
     _, _, terminated, truncated, info = env.step(np.concatenate([env.joint_positions(), [0.0]]))
     assert truncated and info["physics_unstable"] and not terminated
+
+
+def test_a_jump_of_the_joint_targets_is_taken_at_the_ur3e_rated_speed_unless_servo_is_direct():
+    """Between two action chunks a policy's target can jump; the UR3e's servo stream (and the twin) takes a
+    jump no faster than the arm's rated joint speeds, while set at once the servos whip the arm round."""
+    home = np.concatenate([PickPlaceEnv(obs_type="agent_pos").reset(seed=0)[0]["agent_pos"][:6], [0.0]])
+    jump = home + [0.6, 0, 0, 0.8, 0, 0, 0]  # base and wrist 1
+    rated = np.array([math.pi] * 3 + [2 * math.pi] * 3)
+    fastest = {}
+    for servo in ("interpolated", "direct"):
+        env = PickPlaceEnv(obs_type="agent_pos", servo=servo)
+        env.reset(seed=0)
+        speeds = []
+        for _ in range(8):
+            before = env.joint_positions()
+            env.step(jump)
+            speeds.append(np.abs(env.joint_positions() - before) * env.fps)  # mean speed over the period
+        fastest[servo] = np.max(speeds, axis=0)
+        np.testing.assert_allclose(env.joint_positions(), jump[:6], atol=0.02)  # both get there
+    # The arm lags its set point by a few milliseconds; a tenth of the limit is room for the catching up.
+    assert np.all(fastest["interpolated"] <= 1.1 * rated), fastest
+    assert fastest["direct"][0] > 1.5 * rated[0], fastest  # what servo=direct measured before
+
+
+def test_a_target_within_the_rated_speeds_is_the_set_point_at_the_end_of_the_period():
+    env = PickPlaceEnv(obs_type="agent_pos")
+    env.reset(seed=0)
+    target = np.concatenate([env.joint_positions() + [0.05, -0.05, 0.05, 0.1, -0.1, 0.1], [0.0]])
+    env.step(target)
+    np.testing.assert_array_equal(env.data.ctrl[:6], target[:6])

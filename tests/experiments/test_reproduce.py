@@ -75,6 +75,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         ("--train.steps=0", "--train.steps=0 is not allowed"),
         ("--train.extra_flags=dim_model=3", "--train.extra_flags holds 'dim_model=3'"),
         ("--jobs=0", "--jobs=0 is not allowed"),
+        ("--env.servo=fast", "--env.servo='fast' is not allowed; allowed: interpolated, direct"),
     ],
 )
 def test_bad_input_is_one_error_before_work(tmp_path, capsys, flag, message):
@@ -90,6 +91,21 @@ def test_a_directory_it_did_not_write_is_refused(tmp_path, capsys):
     assert main(["reproduce", f"--output_dir={tmp_path}", *TOY]) == 2
     assert "holds no reproduce.json" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_a_reproduction_from_before_the_servo_setting_continues_only_as_it_ran(tmp_path):
+    """Its manifest has no env.servo: it recorded and evaluated with the targets set at once."""
+    from lerobot_condground.experiments.plan import EnvSettings, ReproduceConfig
+    from lerobot_condground.experiments.reproduce import check_same_settings
+
+    out = tmp_path / "run"
+    settings = ReproduceConfig(output_dir=str(out)).pinned()
+    assert settings.pop("env") == {"servo": "interpolated"}
+    out.mkdir()
+    (out / "reproduce.json").write_text(json.dumps({"settings": settings}))
+    with pytest.raises(ValueError, match="other settings \\(env.servo: 'direct' -> 'interpolated'\\)"):
+        check_same_settings(ReproduceConfig(output_dir=str(out)))
+    check_same_settings(ReproduceConfig(output_dir=str(out), env=EnvSettings(servo="direct")))
 
 
 def _commands(out, key: str) -> list[str]:
