@@ -12,7 +12,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from lerobot_condground.core.ur3e import MAX_JOINT_VELOCITY, SERVO_MODES, servo_setpoint
+from lerobot_condground.core.ur3e import MAX_JOINT_VELOCITY, check_servo, servo_setpoint
 
 from . import robot
 from .scene import MAX_RENDER_HEIGHT, MAX_RENDER_WIDTH, PHYSICS_DT
@@ -40,11 +40,6 @@ def check_fps(fps: int) -> None:
         or round(1 / (fps * PHYSICS_DT)) * fps * PHYSICS_DT != 1
     ):
         raise ValueError(f"Control rate fps={fps!r} is not allowed; allowed: divisors of 500 from 5 to 100")
-
-
-def check_servo(servo: str) -> None:
-    if servo not in SERVO_MODES:
-        raise ValueError(f"Unknown servo mode {servo!r}; allowed: {', '.join(SERVO_MODES)}")
 
 
 class ArmEnv(gym.Env):

@@ -68,7 +68,7 @@ class CondGroundEnvConfig(EnvConfig):
 
     def __post_init__(self):
         # Bad names and sizes fail here, when the command line is parsed, before any work starts.
-        from lerobot_condground.core.ur3e import SERVO_MODES
+        from lerobot_condground.core.ur3e import check_servo
 
         from .arm_env import OBS_TYPES, check_resolution
 
@@ -106,8 +106,7 @@ class CondGroundEnvConfig(EnvConfig):
         if self.prompts is None:
             self.prompts = not routing
         check_resolution(self.observation_height, self.observation_width)
-        if self.servo not in SERVO_MODES:
-            raise ValueError(f"--env.servo={self.servo!r} is not allowed; allowed: {', '.join(SERVO_MODES)}")
+        check_servo(self.servo, "--env.servo")
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if self.episode_length < 1:

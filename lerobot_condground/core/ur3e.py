@@ -46,6 +46,11 @@ MAX_JOINT_VELOCITY = np.array([math.pi] * 3 + [2 * math.pi] * 3)
 SERVO_MODES = ("interpolated", "direct")
 
 
+def check_servo(servo: str, name: str = "servo") -> None:
+    if servo not in SERVO_MODES:
+        raise ValueError(f"{name}={servo!r} is not allowed; allowed: {', '.join(SERVO_MODES)}")
+
+
 def servo_setpoint(setpoint, start, goal, fraction: float, max_step, low, high) -> np.ndarray:
     """The next servo set point: `fraction` of the way along the line from `start` to `goal` (a policy target
     interpolated over one control period), at most `max_step` from the last set point, within the joint

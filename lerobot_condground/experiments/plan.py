@@ -16,7 +16,7 @@ from lerobot_condground.core.conditions import TASKS, check_task
 from lerobot_condground.core.configs import check_at_least, usable_cores
 from lerobot_condground.core.paper import METHODS, TABLE2_COLUMN
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
-from lerobot_condground.core.ur3e import SERVO_MODES
+from lerobot_condground.core.ur3e import check_servo
 
 VARIANT_ORDER = ("standard", "full", "augmentation", "augmentation_attention")
 
@@ -182,10 +182,7 @@ class ReproduceConfig:
                 setattr(owner, name, value)
         for task in self.task_list():
             check_task(task)
-        if self.env.servo not in SERVO_MODES:
-            raise ValueError(
-                f"--env.servo={self.env.servo!r} is not allowed; allowed: {', '.join(SERVO_MODES)}"
-            )
+        check_servo(self.env.servo, "--env.servo")
         self.variant_list()
         check_at_least(self.record, "record.", episodes=1, observation_height=1, observation_width=1)
         check_at_least(self.train, "train.", seeds=1, steps=1, batch_size=1, save_freq=1, num_workers=0)

@@ -154,7 +154,7 @@ def test_segmentation_masks_cover_the_entities_they_name():
         (dict(observation_width=32), "Image width 32 cannot be rendered"),
         (dict(fps=33), "Control rate fps=33 is not allowed"),
         (dict(obs_type="state"), "Unknown obs_type 'state'"),
-        (dict(servo="fast"), "Unknown servo mode 'fast'; allowed: interpolated, direct"),
+        (dict(servo="fast"), "servo='fast' is not allowed; allowed: interpolated, direct"),
     ],
 )
 def test_bad_construction_is_refused_with_the_value_named(kwargs, fragment):
