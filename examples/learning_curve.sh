@@ -14,7 +14,8 @@
 # DEMOS clean demonstrations per task (default 100); other counts record into $OUT/data<DEMOS> (a rerun
 # with more resumes the recording) and name their runs <task>_<variant>[_<flags>]_demos<DEMOS>.
 # SIZE="H W" frames (default: the configuration's); another size records into $OUT/data[<DEMOS>]_<H>x<W>
-# and appends _<H>x<W> to the run names.
+# and appends _<H>x<W> to the run names. SERVO: the simulation's --env.servo for recording and evaluation
+# (default interpolated; the curves made before 2026-11-30 used direct, and continue only with it).
 set -euo pipefail
 OUT=${OUT:-outputs/learning-curve}
 RUNS=${RUNS:-"PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard"}
@@ -25,6 +26,7 @@ DEMOS=${DEMOS:-100}         # clean demonstrations per task
 THREADS=${THREADS:-1}       # torch threads per training run
 TRAIN=${TRAIN:-condground train}
 CSV_DIR=${CSV_DIR:-docs/learning-curve}
+SERVO=${SERVO:-interpolated}
 export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 WANDB_MODE=disabled
 read -r -a TRAIN_FLAGS <<< "$(python -m lerobot_condground.core.training)"
 CPU_SIZE=$(python -c "from lerobot_condground.core.training import CPU_FRAME_SIZE as s; print(s[0], s[1])")
@@ -43,7 +45,7 @@ name() {
 episodes() { python -c "import json, sys; print(json.load(open(sys.argv[1]))['total_episodes'])" "$1" 2>/dev/null; }
 for task in $(for run in $RUNS; do echo "${run%%:*}"; done | sort -u); do
   [ "$(episodes "$DATA/$task/meta/info.json")" = "$DEMOS" ] || condground record --env.task="$task" \
-    --env.condition=clean --env.observation_height="${SIZE% *}" --env.observation_width="${SIZE#* }" \
+    --env.condition=clean --env.servo="$SERVO" --env.observation_height="${SIZE% *}" --env.observation_width="${SIZE#* }" \
     --dataset.repo_id="local/$task" --dataset.root="$DATA/$task" --dataset.num_episodes="$DEMOS" --progress=false
 done
 
@@ -84,7 +86,7 @@ for run in $RUNS; do  # one run's checkpoints after another, the runs side by si
   for ckpt in "$dir"/checkpoints/[0-9]*/pretrained_model; do
     step=$(basename "$(dirname "$ckpt")")
     [ -f "$OUT/eval/$(name "$run")/$step/results.parquet" ] || condground sweep --policy.paths="$ckpt" \
-      --env.task="$task" --sweep.conditions=clean --eval.seeds=1 --eval.n_episodes="$EPISODES" \
+      --env.task="$task" --env.servo="$SERVO" --sweep.conditions=clean --eval.seeds=1 --eval.n_episodes="$EPISODES" \
       --output_dir="$OUT/eval/$(name "$run")/$step" --progress=false
   done &
 done
