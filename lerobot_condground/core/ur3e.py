@@ -44,6 +44,7 @@ MAX_JOINT_VELOCITY = np.array([math.pi] * 3 + [2 * math.pi] * 3)
 # servos chase it as fast as they can (a jump between two action chunks can throw the cube off the table);
 # what every run made before this setting existed measured.
 SERVO_MODES = ("interpolated", "direct")
+SERVO_BEFORE_THE_SETTING = "direct"  # what recordings and reproductions that do not name a mode ran with
 
 
 def check_servo(servo: str, name: str = "servo") -> None:

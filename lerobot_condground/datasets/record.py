@@ -37,7 +37,7 @@ from lerobot_condground.core.labels import (
     encode_png,
 )
 from lerobot_condground.core.provenance import RECORD_FILE
-from lerobot_condground.core.ur3e import MOTOR_NAMES
+from lerobot_condground.core.ur3e import MOTOR_NAMES, SERVO_BEFORE_THE_SETTING
 from lerobot_condground.envs.configs import CondGroundEnvConfig
 
 PROVENANCE_ENV_KEYS = (
@@ -52,7 +52,7 @@ PROVENANCE_ENV_KEYS = (
     "servo",
 )
 # What a provenance written before a setting existed recorded with.
-PROVENANCE_ENV_BEFORE = {"servo": "direct"}
+PROVENANCE_ENV_BEFORE = {"servo": SERVO_BEFORE_THE_SETTING}
 
 
 @dataclass

@@ -29,11 +29,10 @@ from tqdm import tqdm
 from lerobot_condground.core.configs import usable_cores
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import versions
+from lerobot_condground.core.ur3e import SERVO_BEFORE_THE_SETTING
 from lerobot_condground.experiments.plan import ReproduceConfig, Stage, checkpoint_dir, makespan, plan
 
 MANIFEST = "reproduce.json"
-# What a manifest written before a setting existed ran with.
-SETTINGS_BEFORE = {"env": {"servo": "direct"}}
 LOG_STEP = re.compile(r"\bstep:(\d+(?:\.\d+)?)([KMB]?)\b")
 
 
@@ -122,7 +121,7 @@ def check_same_settings(cfg: ReproduceConfig) -> None:
     settings = cfg.pinned()
     if path.exists():
         previous = read_json_object(path, "Reproduction manifest").get("settings", {})
-        previous.setdefault("env", SETTINGS_BEFORE["env"])
+        previous.setdefault("env", {"servo": SERVO_BEFORE_THE_SETTING})  # written before the setting existed
         diffs = _differences(previous, settings)
         if diffs:
             raise ValueError(
