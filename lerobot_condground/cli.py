@@ -63,6 +63,14 @@ COMMANDS = {
         "diagnose",
         "Representation diagnostics of an ACT-family checkpoint on matched clean/distractor frames.",
     ),
+    "fit": (
+        "fit",
+        "How precisely a checkpoint reproduces demonstrations (teacher-forced), in rad and cm, per segment.",
+    ),
+    "failures": (
+        "failures",
+        "Why a checkpoint's rollouts fail: each failure's cause, grasp offsets at closing, pushes, stalls.",
+    ),
     "attention": (
         "attention",
         "Per-step cross-attention of one head overlaid on the camera, as a video with stills.",

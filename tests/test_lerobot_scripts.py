@@ -92,7 +92,8 @@ def test_unknown_condition_is_refused_by_lerobot_eval(stock_act_checkpoint, tmp_
 
 @pytest.fixture(scope="module")
 def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
-    """The full act_modified variant trained 3 steps by the stock lerobot-train, with its periodic env eval."""
+    """The full act_modified variant trained 3 steps by the stock lerobot-train, with its periodic env eval
+    and the cosine learning-rate schedule of its training preset."""
     out = tmp_path_factory.mktemp("train_modified") / "run"
     tiny = [a.replace("--policy.type=act", "--policy.type=act_modified") for a in TINY_ACT]
     run_cli(
@@ -100,6 +101,8 @@ def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
         *tiny,
         "--policy.variant=full",
         "--policy.n_vae_encoder_layers=1",
+        "--policy.scheduler_name=cosine",
+        "--policy.scheduler_warmup_steps=1",
         "--dataset.repo_id=local/test_full_mixed",
         f"--dataset.root={recorded_dataset}",
         "--batch_size=2",
@@ -131,6 +134,16 @@ def test_act_modified_checkpoint_is_a_standard_lerobot_checkpoint(act_modified_c
     assert names.index("device_processor") < copy_paste < names.index("normalizer_processor")
     assert (act_modified_checkpoint / steps[copy_paste]["state_file"]).exists()
     assert (act_modified_checkpoint / "model.safetensors").exists()
+
+
+def test_act_modified_cosine_schedule_anneals_to_zero_at_the_last_step(act_modified_checkpoint):
+    train_config = read_json(act_modified_checkpoint / "train_config.json")
+    assert train_config["scheduler"] == {"type": "cosine_annealing_with_warmup", "num_warmup_steps": 1}
+    state = read_json(act_modified_checkpoint.parent / "training_state" / "scheduler_state.json")
+    assert state["last_epoch"] == 3
+    # Two parameter groups (backbone and the rest), both annealed to zero by step 3 of 3.
+    assert len(state["base_lrs"]) == 2 and all(lr > 0 for lr in state["base_lrs"])
+    assert state["_last_lr"] == [0.0, 0.0]
 
 
 def test_stock_lerobot_eval_runs_act_modified(act_modified_checkpoint, tmp_path):

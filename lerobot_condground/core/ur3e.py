@@ -47,6 +47,33 @@ SERVO_MODES = ("interpolated", "direct")
 SERVO_BEFORE_THE_SETTING = "direct"  # what recordings and reproductions that do not name a mode ran with
 
 
+def forward_kinematics(q, tcp_offset: float = FLANGE_TO_TCP) -> tuple[np.ndarray, np.ndarray]:
+    """Tool-centre position (m) and rotation matrix in the base frame for joint angles q (rad): one
+    configuration (6,) or many (..., 6) at once, from the DH table above."""
+    q = np.asarray(q, dtype=float)
+    ct, st = np.cos(q), np.sin(q)
+    t = None
+    for i in range(6):
+        c, s = ct[..., i], st[..., i]
+        ca, sa = math.cos(UR3E_DH_ALPHA[i]), math.sin(UR3E_DH_ALPHA[i])
+        link = np.zeros((*q.shape[:-1], 4, 4))
+        link[..., 0, 0], link[..., 0, 1], link[..., 0, 2], link[..., 0, 3] = (
+            c,
+            -s * ca,
+            s * sa,
+            UR3E_DH_A[i] * c,
+        )
+        link[..., 1, 0], link[..., 1, 1], link[..., 1, 2], link[..., 1, 3] = (
+            s,
+            c * ca,
+            -c * sa,
+            UR3E_DH_A[i] * s,
+        )
+        link[..., 2, 1], link[..., 2, 2], link[..., 2, 3], link[..., 3, 3] = sa, ca, UR3E_DH_D[i], 1.0
+        t = link if t is None else t @ link
+    return t[..., :3, 3] + t[..., :3, 2] * tcp_offset, t[..., :3, :3]
+
+
 def check_servo(servo: str, name: str = "servo") -> None:
     if servo not in SERVO_MODES:
         raise ValueError(f"{name}={servo!r} is not allowed; allowed: {', '.join(SERVO_MODES)}")

@@ -10,27 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_condground.core.ur3e import FLANGE_TO_TCP, UR3E_DH_A, UR3E_DH_ALPHA, UR3E_DH_D
+from lerobot_condground.core.ur3e import forward_kinematics
 
-_D, _A, _ALPHA = np.array(UR3E_DH_D), np.array(UR3E_DH_A), np.array(UR3E_DH_ALPHA)
-
-
-def forward(q, tcp_offset: float = FLANGE_TO_TCP) -> tuple[np.ndarray, np.ndarray]:
-    """Tool-centre position (m) and rotation matrix in the base frame for 6 joint angles (rad)."""
-    q = np.asarray(q, dtype=float)
-    t = np.eye(4)
-    for i in range(6):
-        ct, st = np.cos(q[i]), np.sin(q[i])
-        ca, sa = np.cos(_ALPHA[i]), np.sin(_ALPHA[i])
-        t = t @ np.array(
-            [
-                [ct, -st * ca, st * sa, _A[i] * ct],
-                [st, ct * ca, -ct * sa, _A[i] * st],
-                [0.0, sa, ca, _D[i]],
-                [0.0, 0.0, 0.0, 1.0],
-            ]
-        )
-    return t[:3, 3] + t[:3, 2] * tcp_offset, t[:3, :3]
+# Forward kinematics lives with the DH table: the diagnosis measures tool positions with it too.
+forward = forward_kinematics
 
 
 def _pose_error(q, pos, rot) -> np.ndarray:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType
+from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.policies.act.configuration_act import ACTConfig
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
@@ -31,6 +32,9 @@ from lerobot_condground.core.labels import (
 )
 from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
 
+# Learning-rate schedules of the training preset, over `--steps`: constant is ACT's (no scheduler);
+# cosine warms up linearly, then anneals to zero at the last step.
+SCHEDULERS = ("constant", "cosine")
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
 BACKBONE_NORMS = ("frozen_batchnorm", "batchnorm", "groupnorm")
 # Blocks per stage of the basic-block ResNets a narrower backbone can copy.
@@ -103,6 +107,11 @@ class ACTModifiedConfig(ACTConfig):
     # (timm's ResNet), trained from scratch: half the width is about a quarter of the backbone's compute.
     backbone_width: int = 64
 
+    # Learning-rate schedule of the training preset (one of SCHEDULERS), as diffusion policy names it.
+    # cosine needs `--steps` to be the run's real budget: the rate reaches zero there.
+    scheduler_name: str = "constant"
+    scheduler_warmup_steps: int = 500
+
     # Warm start: a stock `act` (or `act_modified`) checkpoint, local directory or hub id, whose
     # weights initialize the shared ACT parameters; the new heads start fresh.
     init_from_act: str | None = None
@@ -139,6 +148,12 @@ class ACTModifiedConfig(ACTConfig):
                 f"{self.pretrained_backbone_weights!r} (batch-norm statistics); allowed with pretrained "
                 "weights: frozen_batchnorm, batchnorm"
             )
+        if self.scheduler_name not in SCHEDULERS:
+            raise ValueError(
+                f"scheduler_name={self.scheduler_name!r} is not allowed; allowed: {', '.join(SCHEDULERS)}"
+            )
+        if self.scheduler_warmup_steps < 0:
+            raise ValueError(f"scheduler_warmup_steps={self.scheduler_warmup_steps} must be >= 0")
         if self.backbone_width != 64:
             self._check_narrow_backbone()
         if self.use_copy_paste:
@@ -179,6 +194,11 @@ class ACTModifiedConfig(ACTConfig):
             max_occlusion=self.copy_paste_max_occlusion,
             seed=self.copy_paste_seed,
         )
+
+    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
+        if self.scheduler_name == "cosine":
+            return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
+        return None
 
     def needed_label_keys(self) -> list[str]:
         needed = [key for name, keys in COMPONENT_NEEDS.items() if getattr(self, name) for key in keys]

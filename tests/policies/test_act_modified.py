@@ -344,6 +344,8 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
         (dict(backbone_norm="layernorm"), "backbone_norm='layernorm'"),
+        (dict(scheduler_name="linear"), "scheduler_name='linear'.*constant, cosine"),
+        (dict(scheduler_warmup_steps=-1), "scheduler_warmup_steps=-1"),
         (
             dict(backbone_norm="groupnorm", pretrained_backbone_weights="ResNet18_Weights.IMAGENET1K_V1"),
             "groupnorm",

@@ -1,0 +1,217 @@
+"""A training lever measured against the baseline as issue 27 asks: both trained side by side at the same
+step budget, several training seeds each, the last checkpoints of every run pooled on the same held-out
+clean layouts, paired layout by layout, with a 95 % interval and McNemar's exact p.
+
+    python examples/levers.py --task=PickPlaceFixedBin-v0 --data=outputs/levers/data/PickPlaceFixedBin-v0 \\
+        --lever='cosine=--policy.scheduler_name=cosine' --seeds=0,1 --steps=9000 --every=1500 \\
+        --out=outputs/levers --csv=docs/learning-curve/v2/levers.csv
+
+Every run (baseline and each lever, each seed) trains with `condground train` on --threads torch threads,
+all at once; the lever's flags come after the CPU configuration's (lerobot_condground/core/training.py) and
+--flags. A rerun resumes unfinished runs from their last checkpoint and skips finished evaluations. Pairs
+are (seed index, checkpoint rank, layout): the k-th last checkpoint of the baseline's i-th seed against
+the k-th last of the lever's i-th seed, on the same layout. Writes one row per lever to --csv (replacing
+an earlier row of the same lever and task) and every checkpoint's rate beside it
+(`<csv stem>_checkpoints.csv`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from lerobot_condground.core.training import CPU_BATCH_SIZE, policy_flags
+from lerobot_condground.evaluation.results import read_table
+from lerobot_condground.evaluation.statistics import paired_difference, rate
+
+BASELINE = "baseline"
+
+
+def parse_levers(specs: list[str]) -> dict[str, list[str]]:
+    arms = {BASELINE: []}
+    for spec in specs:
+        name, sep, flags = spec.partition("=")
+        if not sep or not name.isidentifier() or name in arms:
+            raise SystemExit(f"--lever={spec!r}: expected NAME=FLAGS with a new identifier NAME")
+        arms[name] = shlex.split(flags)
+    return arms
+
+
+def run_dir(args, arm: str, seed: int) -> Path:
+    return args.out / "train" / f"{args.task}_{args.variant}_{arm}_s{seed}"
+
+
+def checkpoint(train: Path, step: int) -> Path:
+    return train / "checkpoints" / f"{step:06d}" / "pretrained_model"
+
+
+def train_command(args, arm_flags: list[str], train: Path, seed: int) -> list[str]:
+    last = train / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+    if last.exists():
+        return ["condground", "train", f"--config_path={last}", "--resume=true"]
+    return [
+        "condground", "train", "--policy.type=act_modified", f"--policy.variant={args.variant}",
+        "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), *args.flags, *arm_flags,
+        f"--batch_size={CPU_BATCH_SIZE}", f"--dataset.repo_id=local/{args.task}", f"--dataset.root={args.data}",
+        f"--steps={args.steps}", f"--save_freq={args.every}", "--log_freq=100", "--num_workers=0",
+        "--wandb.enable=false", f"--seed={seed}", f"--output_dir={train}",
+    ]  # fmt: skip
+
+
+def train_all(args, arms: dict[str, list[str]]) -> None:
+    env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
+    running = []
+    for arm, flags in arms.items():
+        for seed in args.seeds:
+            train = run_dir(args, arm, seed)
+            if checkpoint(train, args.steps).exists():
+                continue
+            train.parent.mkdir(parents=True, exist_ok=True)
+            command = train_command(args, flags, train, seed)
+            log = open(train.with_suffix(".log"), "a")  # noqa: SIM115 (closed when the run ends)
+            log.write(f"\n# {time.strftime('%F %T')} {shlex.join(command)}\n")
+            log.flush()
+            running.append(
+                (train, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log)
+            )
+    for train, process, log in running:
+        process.wait()
+        log.close()
+        if process.returncode or not checkpoint(train, args.steps).exists():
+            raise SystemExit(f"training {train.name} failed (rc {process.returncode}); see {train}.log")
+
+
+def pooled_steps(args) -> list[int]:
+    last = args.steps - args.every * (args.pool - 1)
+    if last <= 0:
+        raise SystemExit(
+            f"--pool={args.pool} checkpoints every {args.every} steps do not fit in {args.steps}"
+        )
+    return list(range(last, args.steps + 1, args.every))
+
+
+def evaluate_all(args, arms: dict[str, list[str]]) -> None:
+    todo = []
+    for arm in arms:
+        for seed in args.seeds:
+            for step in pooled_steps(args):
+                out = args.out / "eval" / f"{run_dir(args, arm, seed).name}" / f"{step:06d}"
+                if not (out / "results.parquet").exists():
+                    todo.append((checkpoint(run_dir(args, arm, seed), step), out))
+    # One sweep per checkpoint (resumable one by one), --jobs of them at once on one worker each.
+    queue = list(todo)
+    running: list[subprocess.Popen] = []
+    while queue or running:
+        while queue and len(running) < args.jobs:
+            ckpt, out = queue.pop(0)
+            command = [
+                "condground", "sweep", f"--policy.paths={ckpt}", f"--env.task={args.task}",
+                f"--env.servo={args.servo}", "--sweep.conditions=clean", "--eval.seeds=1",
+                f"--eval.n_episodes={args.episodes}", f"--eval.seed_offset={args.seed_offset}", "--workers=1",
+                f"--output_dir={out}", "--progress=false",
+            ]  # fmt: skip
+            running.append(subprocess.Popen(command, stdout=subprocess.DEVNULL))
+        time.sleep(2)
+        for process in [p for p in running if p.poll() is not None]:
+            running.remove(process)
+            if process.returncode:
+                raise SystemExit(f"a sweep failed: {shlex.join(process.args)}")
+
+
+def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
+    frame = read_table(args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}" / "results.parquet")
+    return frame.sort_values("layout_seed").reset_index(drop=True)
+
+
+def analyse(args, arms: dict[str, list[str]]) -> None:
+    steps = pooled_steps(args)
+    per_checkpoint, pooled = [], {}
+    for arm in arms:
+        columns = []
+        for seed in args.seeds:
+            for step in steps:
+                frame = outcomes(args, arm, seed, step)
+                columns.append(frame[["layout_seed", "success"]])
+                r = rate(int(frame["success"].sum()), len(frame))
+                per_checkpoint.append(
+                    {"lever": arm, "task": args.task, "seed": seed, "step": step, "success": r["rate"],
+                     "n": r["n"], "ci_low": r["low"], "ci_high": r["high"]}
+                )  # fmt: skip
+        pooled[arm] = columns
+    rows = []
+    for arm in arms:
+        if arm == BASELINE:
+            continue
+        for ours, theirs in zip(pooled[BASELINE], pooled[arm], strict=True):
+            if not ours["layout_seed"].equals(theirs["layout_seed"]):
+                raise SystemExit(f"{arm}: the baseline and the lever were evaluated on different layouts")
+        a = pd.concat([c["success"] for c in pooled[BASELINE]]).to_numpy()
+        b = pd.concat([c["success"] for c in pooled[arm]]).to_numpy()
+        d = paired_difference(a, b)
+        rows.append(
+            {"lever": arm, "task": args.task, "seeds": len(args.seeds), "n": d["n"], "baseline": d["rate_a"],
+             "treated": d["rate_b"], "diff": d["diff"], "diff_low": d["low"], "diff_high": d["high"],
+             "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.steps,
+             "checkpoints": " ".join(map(str, steps))}
+        )  # fmt: skip
+    args.csv.parent.mkdir(parents=True, exist_ok=True)
+    table = pd.DataFrame(rows)
+    if args.csv.exists():
+        old = pd.read_csv(args.csv)
+        keep = ~old.set_index(["lever", "task"]).index.isin(table.set_index(["lever", "task"]).index)
+        table = pd.concat([old[keep], table], ignore_index=True)
+    table.to_csv(args.csv, index=False, float_format="%.4f")
+    checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
+    mine = pd.DataFrame(per_checkpoint)
+    if checkpoints_csv.exists():
+        old = pd.read_csv(checkpoints_csv)
+        old = old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))]
+        mine = pd.concat([old, mine], ignore_index=True)
+    mine.to_csv(checkpoints_csv, index=False, float_format="%.4f")
+    print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--data", type=Path, required=True, help="the recording to train on")
+    parser.add_argument("--variant", default="standard")
+    parser.add_argument("--lever", action="append", default=[], help="NAME=FLAGS (lerobot-train flags)")
+    parser.add_argument("--flags", default="", help="flags for every arm, baseline included")
+    parser.add_argument("--seeds", default="0,1")
+    parser.add_argument("--steps", type=int, default=9000)
+    parser.add_argument("--every", type=int, default=1500)
+    parser.add_argument("--pool", type=int, default=3, help="last checkpoints of each run pooled")
+    parser.add_argument("--episodes", type=int, default=50, help="held-out layouts per checkpoint")
+    parser.add_argument("--seed_offset", type=int, default=1_000_000, help="layouts (the sweep's default)")
+    parser.add_argument("--servo", default="interpolated")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per training run")
+    parser.add_argument("--jobs", type=int, default=2, help="sweeps at once")
+    parser.add_argument("--out", type=Path, default=Path("outputs/levers"))
+    parser.add_argument("--csv", type=Path, default=Path("docs/learning-curve/v2/levers.csv"))
+    parser.add_argument("--stage", choices=("all", "train", "evaluate", "analyse"), default="all")
+    args = parser.parse_args()
+    if not args.lever:
+        parser.error("give at least one --lever=NAME=FLAGS")
+    args.seeds = [int(s) for s in args.seeds.split(",")]
+    args.flags = shlex.split(args.flags)
+    arms = parse_levers(args.lever)
+    if args.stage in ("all", "train"):
+        train_all(args, arms)
+    if args.stage in ("all", "evaluate"):
+        evaluate_all(args, arms)
+    if args.stage in ("all", "analyse"):
+        analyse(args, arms)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

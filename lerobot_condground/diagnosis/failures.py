@@ -1,0 +1,245 @@
+"""`condground failures`: why a checkpoint's rollouts fail, read off the simulation step by step.
+
+The checkpoint runs on the sweep's layouts (same seeds as `condground sweep --eval.seed_offset`) while a
+tracer reads what the env knows at every step: the tool-centre point, the target object's position, the
+gripper command and the stage flags. Events:
+
+- a *closing*: the gripper command crosses to closed (>= 0.5); its *offset* is the horizontal distance
+  from the tool-centre point to the target's centre then (cm), its *height* the vertical one;
+- *pushed*: how far the target moved on the table before the first closing (cm);
+- *stalled*: the episode ran to its step limit and the tool moved less than 1 cm over its last 2 s.
+
+Each failed rollout gets one cause, the first that applies: `unstable` (physics), `cube_off_table`,
+`wrong_object` (a look-alike grasped), `wrong_receptacle`, `lifted_not_placed` (dropped, or released
+outside the bowl), `picked_not_lifted`, `pushed_away` (the target moved > 2 cm before any closing),
+`closed_off_target` (closed beside it and never picked it; its offset says by how much), `never_closed`.
+Writes `episodes.parquet` (one row per rollout with every measurement) and `failures.json` (counts per
+cause, offsets at closing).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_condground.core.conditions import ROUTING_TASK
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
+from lerobot_condground.core.provenance import command_line, versions
+
+logger = logging.getLogger(__name__)
+
+CAUSES = (
+    "success",
+    "unstable",
+    "cube_off_table",
+    "wrong_object",
+    "wrong_receptacle",
+    "lifted_not_placed",
+    "picked_not_lifted",
+    "pushed_away",
+    "closed_off_target",
+    "never_closed",
+)
+CLOSED = 0.5  # gripper command: 0 open .. 1 closed
+PUSHED_CM = 2.0
+STALL_SECONDS = 2.0
+STALL_CM = 1.0
+TARGET = 1  # the target object's entity label
+
+
+@dataclass
+class FailureOptions:
+    episodes: int = 50
+    seed_offset: int = 1_000_000  # the sweep's default: its layouts, rollout by rollout
+    batch_size: int = 10
+
+
+@dataclass
+class FailuresConfig:
+    policy: PolicyRefConfig = field(default_factory=PolicyRefConfig)
+    env: EvalEnvConfig = field(default_factory=EvalEnvConfig)
+    failures: FailureOptions = field(default_factory=FailureOptions)
+    output_dir: str = "outputs/failures"
+    progress: bool = True
+
+
+class Tracer:
+    """Per-step read-outs of a batch of pick-and-place envs (a `run_episodes` step hook)."""
+
+    def __init__(self, envs: list, fps: int):
+        from lerobot_condground.envs.robot import FINGER_TRAVEL
+
+        self.envs = envs
+        self.closed_ctrl = CLOSED * FINGER_TRAVEL  # the gripper actuator's set point for a command
+        self.stall_steps = int(STALL_SECONDS * fps)
+        n = len(envs)
+        self.start = [env.entity_pose(TARGET)[0] for env in envs]
+        self.closed = np.zeros(n, dtype=bool)
+        self.closings: list[list[tuple[float, float]]] = [[] for _ in range(n)]
+        self.pushed = np.zeros(n)
+        self.tool: list[list[np.ndarray]] = [[] for _ in range(n)]
+
+    def __call__(self, step: int, batch, observations: list[dict], active: np.ndarray) -> None:
+        for i in np.flatnonzero(active):
+            env = self.envs[i]
+            tool, target = env.tcp_pose()[0], env.entity_pose(TARGET)[0]
+            self.tool[i].append(tool)
+            closed = env.data.ctrl[6] >= self.closed_ctrl  # the last step's gripper command
+            if closed and not self.closed[i]:
+                self.closings[i].append(
+                    (float(np.hypot(*(tool - target)[:2]) * 100), float((tool - target)[2] * 100))
+                )
+            self.closed[i] = closed
+            if not self.closings[i]:
+                self.pushed[i] = max(self.pushed[i], float(np.hypot(*(target - self.start[i])[:2]) * 100))
+
+    def measurements(self, i: int, truncated: bool) -> dict:
+        closings = self.closings[i]
+        tail = np.array(self.tool[i][-self.stall_steps :])
+        path = float(np.linalg.norm(np.diff(tail, axis=0), axis=1).sum() * 100) if len(tail) > 1 else 0.0
+        offsets = [c[0] for c in closings]
+        return {
+            "closings": len(closings),
+            "first_close_offset_cm": offsets[0] if offsets else float("nan"),
+            "first_close_height_cm": closings[0][1] if closings else float("nan"),
+            "min_close_offset_cm": min(offsets) if offsets else float("nan"),
+            "pushed_cm": float(self.pushed[i]),
+            "stalled": bool(truncated and len(tail) >= self.stall_steps and path < STALL_CM),
+        }
+
+
+def cause(row: dict) -> str:
+    """The first cause that applies to one rollout's outcome and measurements."""
+    if row["success"]:
+        return "success"
+    if row["physics_unstable"]:
+        return "unstable"
+    if row["target_z"] < -0.05 or np.hypot(row["target_x"], row["target_y"]) > 1.0:
+        return "cube_off_table"
+    if row["selected_competitor_object"]:
+        return "wrong_object"
+    if row["placed_in_competitor_receptacle"]:
+        return "wrong_receptacle"
+    if row["lift"]:
+        return "lifted_not_placed"
+    if row["pick"]:
+        return "picked_not_lifted"
+    if row["pushed_cm"] > PUSHED_CM:
+        return "pushed_away"
+    if row["closings"]:
+        return "closed_off_target"
+    return "never_closed"
+
+
+def summarize(rows) -> dict:
+    """Counts per cause and the offsets at closing, over a table of rollouts (pandas)."""
+    failed = rows[~rows["success"]]
+    counts = rows["cause"].value_counts()
+    closed = rows[rows["closings"] > 0]
+    return {
+        "rollouts": len(rows),
+        "successes": int(rows["success"].sum()),
+        "causes": {c: int(counts.get(c, 0)) for c in CAUSES},
+        "regrasped": int((failed["closings"] > 1).sum()),
+        "stalled": int(failed["stalled"].sum()),
+        "first_close_offset_cm": {
+            "success_median": float(closed[closed["success"]]["first_close_offset_cm"].median()),
+            "failure_median": float(closed[~closed["success"]]["first_close_offset_cm"].median()),
+        },
+    }
+
+
+def format_failures(result: dict) -> str:
+    n = result["rollouts"]
+    lines = [f"{'cause':<20} {'rollouts':>8}"]
+    lines += [f"{c:<20} {k:>8} ({k / n:.0%})" for c, k in result["causes"].items() if k]
+    offsets = result["first_close_offset_cm"]
+    lines.append(
+        f"first closing, median offset from the target: {offsets['success_median']:.1f} cm in successes, "
+        f"{offsets['failure_median']:.1f} cm in failures; failures that re-grasped: {result['regrasped']}, "
+        f"stalled: {result['stalled']}"
+    )
+    return "\n".join(lines)
+
+
+def run_failures(cfg: FailuresConfig) -> Path:
+    """Traced rollouts of one checkpoint -> DIR/episodes.parquet and DIR/failures.json."""
+    import pandas as pd
+    from tqdm import tqdm
+
+    from lerobot_condground.diagnosis.hooks import check_condition
+    from lerobot_condground.evaluation.checkpoints import describe_checkpoint, load_policy, resolve_device
+    from lerobot_condground.evaluation.rollout import EnvPool, EnvSpec, run_episodes
+    from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT, layout_seed
+
+    opts = cfg.failures
+    if not 1 <= opts.episodes <= EPISODES_PER_SEED_LIMIT:
+        raise ValueError(
+            f"--failures.episodes={opts.episodes} is not allowed; allowed: 1 to {EPISODES_PER_SEED_LIMIT}"
+        )
+    if opts.batch_size < 1:
+        raise ValueError(f"--failures.batch_size={opts.batch_size} must be at least 1")
+    check_seed("--failures.seed_offset", opts.seed_offset, opts.episodes)
+    if cfg.env.task == ROUTING_TASK:
+        raise ValueError(
+            f"--env.task={cfg.env.task!r}: the failure causes are pick-and-place stages; use `condground subgoals`"
+        )
+    condition = check_condition(cfg.env.condition or "clean", "--env.condition")
+    path = cfg.policy.single()
+    described = describe_checkpoint(path, cfg.policy.label, trust_remote_code=cfg.policy.trust_remote_code)
+    if described.is_expert:
+        raise ValueError("--policy.path=expert: the scripted expert does not fail; give a checkpoint")
+    spec = EnvSpec.for_checkpoint(cfg.env, described, condition)
+    loaded = load_policy(
+        path,
+        spec.lerobot_config(),
+        resolve_device(cfg.policy.device),
+        cfg.policy.label,
+        trust_remote_code=cfg.policy.trust_remote_code,
+    )
+    out = Path(cfg.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    pool, rows = EnvPool(), []
+    starts = range(0, opts.episodes, opts.batch_size)
+    for start in tqdm(starts, desc="failures", unit="batch", disable=not cfg.progress):
+        episodes = list(range(start, min(start + opts.batch_size, opts.episodes)))
+        seeds = [layout_seed(opts.seed_offset, 0, e) for e in episodes]
+        envs = pool.get(spec, len(seeds))
+        tracer = None
+
+        def on_step(step, batch, observations, active, envs=envs):
+            nonlocal tracer
+            if tracer is None:  # after reset: the target's starting position
+                tracer = Tracer(envs, spec.fps)
+            tracer(step, batch, observations, active)
+
+        outcomes = run_episodes(loaded, envs, seeds, spec.episode_length, on_step=on_step)
+        for i, (episode, seed, outcome) in enumerate(zip(episodes, seeds, outcomes, strict=True)):
+            row = {
+                "episode": episode,
+                "layout_seed": seed,
+                **outcome,
+                **tracer.measurements(i, outcome["truncated"]),
+            }
+            rows.append({**row, "cause": cause(row)})
+    table = pd.DataFrame(rows)
+    table.to_parquet(out / "episodes.parquet", index=False)
+    result = {
+        "checkpoint": described.path,
+        "checkpoint_hash": described.hash,
+        "label": described.label,
+        "task": spec.task,
+        "condition": condition,
+        "servo": spec.servo,
+        "seed_offset": opts.seed_offset,
+        **summarize(table),
+        "command": command_line("failures", cfg),
+        "versions": versions(),
+    }
+    (out / "failures.json").write_text(json.dumps(result, indent=2))
+    print(format_failures(result))  # noqa: T201 (the command's result)
+    return out

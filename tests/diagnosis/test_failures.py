@@ -1,0 +1,88 @@
+"""`condground failures`: the tracer's events on real rollouts, and the cause each outcome gets."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from helpers import read_json, run_cli
+from lerobot_condground.diagnosis.failures import CAUSES, Tracer, cause
+from lerobot_condground.evaluation.checkpoints import describe_checkpoint
+from lerobot_condground.evaluation.rollout import EnvSpec, run_episodes
+
+
+def test_the_expert_closes_once_on_the_cube_without_pushing_it():
+    spec = EnvSpec(
+        task="PickPlaceFixedBin-v0", condition="clean", observation_height=96, observation_width=128
+    )
+    envs = [spec.make() for _ in range(2)]
+    tracers = []
+
+    def on_step(step, batch, observations, active):
+        if step == 0:
+            tracers.append(Tracer(envs, spec.fps))
+        tracers[0](step, batch, observations, active)
+
+    outcomes = run_episodes(describe_checkpoint("expert"), envs, [3, 4], spec.episode_length, on_step=on_step)
+    for i, outcome in enumerate(outcomes):
+        measured = tracers[0].measurements(i, outcome["truncated"])
+        assert outcome["success"] and measured["closings"] == 1, measured
+        assert measured["first_close_offset_cm"] < 1.0 and measured["pushed_cm"] < 0.5, measured
+        assert cause({**outcome, **measured}) == "success"
+
+
+OUTCOME = dict(
+    success=False, physics_unstable=False, target_x=0.4, target_y=0.0, target_z=0.02, pick=False, lift=False,
+    selected_competitor_object=False, placed_in_competitor_receptacle=False, pushed_cm=0.0, closings=0,
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "changes, expected",
+    [
+        (dict(success=True, pick=True, lift=True), "success"),
+        (dict(physics_unstable=True, target_z=-1.0), "unstable"),
+        (dict(target_z=-0.3, pick=True), "cube_off_table"),
+        (dict(selected_competitor_object=True, pick=True), "wrong_object"),
+        (dict(placed_in_competitor_receptacle=True, pick=True, lift=True), "wrong_receptacle"),
+        (dict(pick=True, lift=True, closings=2), "lifted_not_placed"),
+        (dict(pick=True, closings=1), "picked_not_lifted"),
+        (dict(pushed_cm=5.0, closings=1), "pushed_away"),
+        (dict(pushed_cm=1.0, closings=3), "closed_off_target"),
+        ({}, "never_closed"),
+    ],
+)
+def test_each_failure_gets_the_first_cause_that_applies(changes, expected):
+    assert cause({**OUTCOME, **changes}) == expected
+
+
+def test_failures_command_on_a_checkpoint(tiny_checkpoints, tmp_path):
+    out = tmp_path / "failures"
+    run_cli(
+        "condground", "failures", f"--policy.path={tiny_checkpoints[0]}", "--env.task=PickPlaceRandomBin-v0",
+        "--env.episode_length=30", "--failures.episodes=3", "--failures.batch_size=2", f"--output_dir={out}",
+        "--progress=false",
+    )  # fmt: skip
+    rows = pd.read_parquet(out / "episodes.parquet")
+    assert list(rows["episode"]) == [0, 1, 2] and list(rows["layout_seed"]) == [
+        1_000_000,
+        1_000_001,
+        1_000_002,
+    ]
+    assert set(rows["cause"]) <= set(CAUSES) and not rows["success"].any()
+    result = read_json(out / "failures.json")
+    assert sum(result["causes"].values()) == 3 and result["servo"] == "interpolated"
+    assert np.isfinite(rows["pushed_cm"]).all()
+
+
+def test_bad_input_is_one_line(tiny_checkpoints, tmp_path):
+    for flag, message in (
+        ("--failures.episodes=0", "--failures.episodes=0"),
+        ("--env.task=InstrumentRouting-v0", "use `condground subgoals`"),
+        ("--env.condition=object_color_9", "object_color_9"),
+    ):
+        proc = run_cli(
+            "condground", "failures", f"--policy.path={tiny_checkpoints[0]}", flag,
+            f"--output_dir={tmp_path / 'out'}", check=False,
+        )  # fmt: skip
+        assert proc.returncode == 2 and message in proc.stderr.strip().splitlines()[-1], proc.stderr
+        assert not (tmp_path / "out").exists()
