@@ -12,7 +12,10 @@ all at once; the lever's flags come after the CPU configuration's (lerobot_condg
 are (seed index, checkpoint rank, layout): the k-th last checkpoint of the baseline's i-th seed against
 the k-th last of the lever's i-th seed, on the same layout. Writes one row per lever to --csv (replacing
 an earlier row of the same lever and task) and every checkpoint's rate beside it
-(`<csv stem>_checkpoints.csv`).
+(`<csv stem>_checkpoints.csv`). With --heldout, `condground fit` of each run's last checkpoint on its first
+training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
+--train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
+seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success.
 """
 
 from __future__ import annotations
@@ -105,16 +108,24 @@ def evaluate_all(args, arms: dict[str, list[str]]) -> None:
                 out = args.out / "eval" / f"{run_dir(args, arm, seed).name}" / f"{step:06d}"
                 if not (out / "results.parquet").exists():
                     todo.append((checkpoint(run_dir(args, arm, seed), step), out))
+    # The last checkpoints again on the recording's own layouts (its seeds 0, 1, ...: fit or generalization?).
+    for arm in arms if args.train_layouts else ():
+        for seed in args.seeds:
+            out = args.out / "eval_train" / run_dir(args, arm, seed).name / f"{args.steps:06d}"
+            if not (out / "results.parquet").exists():
+                todo.append((checkpoint(run_dir(args, arm, seed), args.steps), out))
     # One sweep per checkpoint (resumable one by one), --jobs of them at once on one worker each.
     queue = list(todo)
     running: list[subprocess.Popen] = []
     while queue or running:
         while queue and len(running) < args.jobs:
             ckpt, out = queue.pop(0)
+            own_layouts = out.parts[-3] == "eval_train"
             command = [
                 "condground", "sweep", f"--policy.paths={ckpt}", f"--env.task={args.task}",
                 f"--env.servo={args.servo}", "--sweep.conditions=clean", "--eval.seeds=1",
-                f"--eval.n_episodes={args.episodes}", f"--eval.seed_offset={args.seed_offset}", "--workers=1",
+                f"--eval.n_episodes={args.train_layouts if own_layouts else args.episodes}",
+                f"--eval.seed_offset={0 if own_layouts else args.seed_offset}", "--workers=1",
                 f"--output_dir={out}", "--progress=false",
             ]  # fmt: skip
             running.append(subprocess.Popen(command, stdout=subprocess.DEVNULL))
@@ -176,6 +187,75 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
         mine = pd.concat([old, mine], ignore_index=True)
     mine.to_csv(checkpoints_csv, index=False, float_format="%.4f")
     print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
+    if args.train_layouts:
+        fit_vs_heldout(args, arms)
+
+
+def fit_vs_heldout(args, arms: dict[str, list[str]]) -> None:
+    """Each run's last checkpoint on the recording's own layouts and on held-out ones, pooled over seeds."""
+    rows = []
+    for arm in arms:
+        for layouts, folder in (("train", "eval_train"), ("heldout", "eval")):
+            frames = [
+                read_table(
+                    args.out
+                    / folder
+                    / run_dir(args, arm, seed).name
+                    / f"{args.steps:06d}"
+                    / "results.parquet"
+                )
+                for seed in args.seeds
+            ]
+            success = pd.concat(frames)["success"]
+            r = rate(int(success.sum()), len(success))
+            rows.append(
+                {"task": args.task, "variant": args.variant, "config": arm, "step": args.steps, "layouts": layouts,
+                 "success": r["rate"], "n": r["n"], "ci_low": r["low"], "ci_high": r["high"],
+                 "seeds": len(args.seeds)}
+            )  # fmt: skip
+    path = args.fit_vs_heldout_csv
+    mine = pd.DataFrame(rows)
+    if path.exists():
+        old = pd.read_csv(path)
+        mine = pd.concat([old[~(old["task"].eq(args.task) & old["config"].isin(list(arms)))], mine])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mine.to_csv(path, index=False, float_format="%.4f")
+    print(pd.DataFrame(rows).to_string(index=False))
+
+
+def fit_all(args, arms: dict[str, list[str]]) -> None:
+    """`condground fit` of every run's last checkpoint on the first demonstrations it trained on and on the
+    held-out recording: the teacher-forced error in physical units beside the success it buys."""
+    import json
+
+    rows = []
+    datasets = {"train": (args.data, args.fit_episodes), "heldout": (args.heldout, "all")}
+    for arm in arms:
+        for seed in args.seeds:
+            for layouts, (root, episodes) in datasets.items():
+                out = args.out / "fit" / run_dir(args, arm, seed).name / layouts
+                if not (out / "fit.json").exists():
+                    subprocess.run(
+                        ["condground", "fit", f"--policy.path={checkpoint(run_dir(args, arm, seed), args.steps)}",
+                         f"--dataset.root={root}", f"--fit.episodes={episodes}", f"--output_dir={out}",
+                         "--progress=false"],
+                        check=True, stdout=subprocess.DEVNULL,
+                    )  # fmt: skip
+                for segment, row in json.loads((out / "fit.json").read_text())["segments"].items():
+                    rows.append(
+                        {"lever": arm, "task": args.task, "seed": seed, "step": args.steps, "layouts": layouts,
+                         "segment": segment, "frames": row["frames"], "l1": row["l1"], "tcp_cm": row["tcp_cm"],
+                         "tcp_cm_p90": row["tcp_cm_p90"], "base_rad": row["joint_rad"][0],
+                         "wrist3_rad": row["joint_rad"][5], "gripper": row["gripper"]}
+                    )  # fmt: skip
+    fit_csv = args.csv.with_name(f"{args.csv.stem}_fit.csv")
+    mine = pd.DataFrame(rows)
+    if fit_csv.exists():
+        old = pd.read_csv(fit_csv)
+        mine = pd.concat([old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))], mine])
+    mine.to_csv(fit_csv, index=False, float_format="%.4f")
+    overall = mine[mine["segment"].isin(["all", "grasp"]) & mine["task"].eq(args.task)]
+    print(overall.groupby(["lever", "layouts", "segment"])[["l1", "tcp_cm", "base_rad"]].mean().to_string())
 
 
 def main() -> None:
@@ -198,7 +278,15 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="sweeps at once")
     parser.add_argument("--out", type=Path, default=Path("outputs/levers"))
     parser.add_argument("--csv", type=Path, default=Path("docs/learning-curve/v2/levers.csv"))
-    parser.add_argument("--stage", choices=("all", "train", "evaluate", "analyse"), default="all")
+    parser.add_argument(
+        "--train_layouts", type=int, default=0, help="rollouts on the recording's own layouts"
+    )
+    parser.add_argument(
+        "--fit_vs_heldout_csv", type=Path, default=Path("docs/learning-curve/fit_vs_heldout.csv")
+    )
+    parser.add_argument("--heldout", type=Path, help="a held-out recording of the task (the fit stage)")
+    parser.add_argument("--fit_episodes", default="0:20", help="training episodes the fit stage reads")
+    parser.add_argument("--stage", choices=("all", "train", "evaluate", "analyse", "fit"), default="all")
     args = parser.parse_args()
     if not args.lever:
         parser.error("give at least one --lever=NAME=FLAGS")
@@ -211,6 +299,8 @@ def main() -> None:
         evaluate_all(args, arms)
     if args.stage in ("all", "analyse"):
         analyse(args, arms)
+    if args.stage in ("all", "fit") and args.heldout is not None:
+        fit_all(args, arms)
 
 
 if __name__ == "__main__":

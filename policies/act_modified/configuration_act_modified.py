@@ -35,6 +35,9 @@ from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, Co
 # Learning-rate schedules of the training preset, over `--steps`: constant is ACT's (no scheduler);
 # cosine warms up linearly, then anneals to zero at the last step.
 SCHEDULERS = ("constant", "cosine")
+# The ResNet stage whose output becomes the transformer's image tokens: layer4 (ACT's, stride 32) or layer3
+# (stride 16: four times the tokens, at less compute than the final stride's dilation, which still runs layer4).
+BACKBONE_LAYERS = ("layer4", "layer3")
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
 BACKBONE_NORMS = ("frozen_batchnorm", "batchnorm", "groupnorm")
 # Blocks per stage of the basic-block ResNets a narrower backbone can copy.
@@ -106,6 +109,8 @@ class ACTModifiedConfig(ACTConfig):
     # (`vision_backbone`, loadable with ImageNet weights); smaller widths build the same layout narrower
     # (timm's ResNet), trained from scratch: half the width is about a quarter of the backbone's compute.
     backbone_width: int = 64
+    # The stage read as image tokens (one of BACKBONE_LAYERS): layer3 cuts the ResNet there, stride 16.
+    backbone_layer: str = "layer4"
 
     # Learning-rate schedule of the training preset (one of SCHEDULERS), as diffusion policy names it.
     # cosine needs `--steps` to be the run's real budget: the rate reaches zero there.
@@ -147,6 +152,15 @@ class ACTModifiedConfig(ACTConfig):
                 f"backbone_norm=groupnorm cannot load pretrained_backbone_weights="
                 f"{self.pretrained_backbone_weights!r} (batch-norm statistics); allowed with pretrained "
                 "weights: frozen_batchnorm, batchnorm"
+            )
+        if self.backbone_layer not in BACKBONE_LAYERS:
+            raise ValueError(
+                f"backbone_layer={self.backbone_layer!r} is not allowed; allowed: {', '.join(BACKBONE_LAYERS)}"
+            )
+        if self.backbone_layer != "layer4" and self.replace_final_stride_with_dilation:
+            raise ValueError(
+                f"backbone_layer={self.backbone_layer!r} with replace_final_stride_with_dilation=true: the dilation "
+                "is in layer4, which the cut drops; allowed: one of the two"
             )
         if self.scheduler_name not in SCHEDULERS:
             raise ValueError(

@@ -115,7 +115,9 @@ def _resnet(config: ACTModifiedConfig) -> nn.Module:
 class ACTModified(ACT):
     def __init__(self, config: ACTModifiedConfig):
         rebuild = config.image_features and (
-            config.backbone_norm != "frozen_batchnorm" or config.backbone_width != 64
+            config.backbone_norm != "frozen_batchnorm"
+            or config.backbone_width != 64
+            or config.backbone_layer != "layer4"
         )
         # ACT's own backbone is replaced below when rebuilt; built without dilation, which torchvision's
         # BasicBlock refuses and the narrow ResNet takes.
@@ -128,9 +130,14 @@ class ACTModified(ACT):
             # ACT builds its ResNet with FrozenBatchNorm2d whatever the weights; rebuilt the same way with
             # normalization that trains, and narrower if asked.
             resnet = _resnet(config)
-            self.backbone = IntermediateLayerGetter(resnet, return_layers={"layer4": "feature_map"})
-            if config.backbone_width != 64:
-                self.encoder_img_feat_input_proj = nn.Conv2d(resnet.fc.in_features, dim, kernel_size=1)
+            # The getter keeps the stages up to the one it returns: a layer3 cut never builds layer4's weights.
+            self.backbone = IntermediateLayerGetter(
+                resnet, return_layers={config.backbone_layer: "feature_map"}
+            )
+            last = getattr(resnet, config.backbone_layer)[-1]
+            channels = (last.conv3 if hasattr(last, "conv3") else last.conv2).out_channels
+            if channels != self.encoder_img_feat_input_proj.in_channels:
+                self.encoder_img_feat_input_proj = nn.Conv2d(channels, dim, kernel_size=1)
         if config.use_phase_predictor:
             pooled = self.encoder_img_feat_input_proj.in_channels * len(config.image_features)
             state = config.robot_state_feature.shape[0] if config.robot_state_feature else 0

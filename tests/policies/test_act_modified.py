@@ -215,6 +215,30 @@ def test_narrow_backbone_takes_the_final_dilation():
     assert fine.model.backbone.conv1.weight.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("width", [64, 16])
+def test_backbone_cut_after_layer3_doubles_the_token_grid_without_layer4(width):
+    """backbone_layer=layer3: stride 16 (twice the grid's sides) from the stage before layer4, whose weights
+    are not even built; the projection takes that stage's channels and the attention terms pool onto the grid."""
+    settings = dict(variant="full", backbone_norm="batchnorm", backbone_width=width)
+    coarse, fine = make_policy(**settings), make_policy(**settings, backbone_layer="layer3")
+    image = torch.rand(B, 3, H, W)
+    coarse_map, fine_map = (
+        coarse.model.backbone(image)["feature_map"],
+        fine.model.backbone(image)["feature_map"],
+    )
+    assert fine_map.shape[2:] == (2 * coarse_map.shape[2], 2 * coarse_map.shape[3])
+    assert fine_map.shape[1] * 2 == coarse_map.shape[1] == 8 * width
+    assert fine.model.encoder_img_feat_input_proj.in_channels == 4 * width
+    assert not any(name.startswith("layer4") for name, _ in fine.model.backbone.named_parameters())
+    fine.train()
+    loss, terms = fine(make_batch())
+    loss.backward()
+    assert torch.isfinite(loss) and terms["attention_on_relevant"] > 0
+    assert fine.model.backbone.conv1.weight.grad.abs().sum() > 0
+    fine.eval()
+    assert torch.isfinite(fine.select_action(observation(make_batch(1)))).all()
+
+
 def test_every_loss_term_holds_under_bf16_autocast():
     """lerobot-train --policy.use_amp=true runs forward under bf16 autocast: the recomputed attention softmax,
     the phase cross-entropy, the attention terms and the prompt encoding must stay within bf16 rounding of
@@ -344,6 +368,11 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
         (dict(backbone_norm="layernorm"), "backbone_norm='layernorm'"),
+        (dict(backbone_layer="layer2"), "backbone_layer='layer2'.*layer4, layer3"),
+        (
+            dict(backbone_layer="layer3", backbone_norm="batchnorm", replace_final_stride_with_dilation=True),
+            "one of the two",
+        ),
         (dict(scheduler_name="linear"), "scheduler_name='linear'.*constant, cosine"),
         (dict(scheduler_warmup_steps=-1), "scheduler_warmup_steps=-1"),
         (
