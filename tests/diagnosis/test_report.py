@@ -614,3 +614,33 @@ def test_subgoal_section_tables_each_condition_beside_the_paper(tmp_path):
     copy = shutil.copytree(sim, tmp_path / "sim_again")
     with pytest.raises(ValueError, match=r"trials appear in more than one subgoals directory .*sim"):
         build_report(ReportConfig(input_dir=[str(sim), str(copy)], output=str(tmp_path / "r2.html")))
+
+
+def test_values_from_the_inputs_stay_text_in_markdown(inputs, tmp_path):
+    """A policy label or a note can carry Markdown: a remote image, a javascript: link, a heading, a table row.
+    Rendered by a CommonMark parser, the report's Markdown shows them as the text they are."""
+    from markdown_it import MarkdownIt
+
+    image, link = "![pixel](https://evil.example/p.png)", "[run](javascript:alert(1))"
+    sweep = tmp_path / "sweep"
+    shutil.copytree(inputs[0], sweep)
+    rows = pq.read_table(sweep / "results.parquet")
+    frame = rows.to_pandas()
+    frame["policy_label"] = frame["policy_label"].replace("act", f"act {image} {link}")
+    pq.write_table(pa.Table.from_pandas(frame, preserve_index=False).replace_schema_metadata(rows.schema.metadata),
+                   sweep / "results.parquet")  # fmt: skip
+    diag = tmp_path / "diag"
+    shutil.copytree(inputs[2], diag)
+    data = json.loads((diag / "diagnostics.json").read_text())
+    data["notes"] = [f"{image} {link}\n# Owned\n| a | b |\n- listed **bold** `code`"]
+    (diag / "diagnostics.json").write_text(json.dumps(data))
+    _, md_path = build_report(
+        ReportConfig(input_dir=[str(sweep), str(diag)], output=str(tmp_path / "r.html"))
+    )
+    rendered = MarkdownIt("commonmark").enable("table").render(md_path.read_text())
+    assert "evil.example" in rendered and "javascript:alert" in rendered  # shown ...
+    assert 'src="https://evil' not in rendered and 'href="javascript' not in rendered  # ... never live
+    assert "<h1>Owned" not in rendered and "<strong>bold" not in rendered and "<li>listed" not in rendered
+    assert image in rendered and "<code>code</code>" in rendered
+    # Every figure the report links is its own PNG, in its own folder.
+    assert all(src.startswith("r_files/") for src in re.findall(r'<img src="([^"]+)"', rendered))

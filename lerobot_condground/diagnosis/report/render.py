@@ -7,6 +7,7 @@ import base64
 import html
 import json
 import re
+import urllib.parse
 from pathlib import Path
 
 from jinja2 import Environment, PackageLoader, StrictUndefined
@@ -28,18 +29,33 @@ def _code_spans(text: str) -> Markup:
     return Markup(re.sub(r"`([^`]+)`", r"<code>\1</code>", _escape_html(text)))
 
 
+# Outside code spans, what Markdown would read as markup anywhere in a line: emphasis (an underscore only at a
+# word's edge: inside a word it is text), strikethrough, table pipes, escapes, a stray backtick, and a closing
+# bracket that a link's destination or label follows (with definitions kept off line starts below, a
+# bracket alone, as in an interval, links nothing). Inside a code span every character is literal already.
+_MARKDOWN_PUNCTUATION = re.compile(r"([\\`*~|]|\](?=[(\[])|(?<![A-Za-z0-9])_|_(?![A-Za-z0-9]))")
+# At a line's start: headings, list items, setext heading underlines and link reference definitions (block
+# quotes are escaped HTML).
+_LINE_START = re.compile(r"^(\s*)([-+=#\[])|^(\s*\d+)([.)])(?=\s|$)", re.MULTILINE)
+_CODE_SPAN = re.compile(r"(`[^`\n]+`)")
+
+
 def _escape_markdown(value) -> Markup:
-    """HTML in Markdown is live: text from the inputs (labels, paths, notes) is escaped as in the HTML."""
+    """Text from the inputs (labels, paths, notes) stays inert text in Markdown: HTML is escaped as in the
+    HTML report, and every character Markdown reads as markup is backslash-escaped, so a value can make no
+    link, image, heading, list or table cell. The report's own `code` spans stay code spans."""
     if hasattr(value, "__html__"):
         return Markup(value.__html__())
-    return Markup(html.escape(str(value), quote=False))
+    parts = _CODE_SPAN.split(html.escape(str(value), quote=False))
+    text = "".join(part if i % 2 else _MARKDOWN_PUNCTUATION.sub(r"\\\1", part) for i, part in enumerate(parts))
+    return Markup(_LINE_START.sub(lambda m: f"{m[1] or m[3] or ''}\\{m[2] or m[4]}", text))
 
 
 def _md_row(cells) -> Markup:
-    """A Markdown table row's cells: a pipe would end the cell, and a line break the row."""
+    """A Markdown table row's cells (a pipe is escaped, so it cannot end a cell); a line break would end the
+    row, so lines are joined with <br>."""
     return Markup(" | ").join(
-        Markup("<br>").join(_escape_markdown(line.replace("|", "\\|")) for line in str(cell).splitlines())
-        for cell in cells
+        Markup("<br>").join(_escape_markdown(line) for line in str(cell).splitlines()) for cell in cells
     )
 
 
@@ -70,7 +86,10 @@ def _environment(autoescape: bool) -> Environment:
 _HTML = _environment(autoescape=True)
 _HTML.filters.update(code_spans=_code_spans, base64=lambda png: base64.b64encode(png).decode("ascii"))
 _MARKDOWN = _environment(autoescape=False)
-_MARKDOWN.filters.update(md=_escape_markdown, md_row=_md_row, md_columns=_md_columns)
+# A link destination is percent-encoded, not backslash-escaped: parentheses and spaces cannot end it.
+_MARKDOWN.filters.update(
+    md=_escape_markdown, md_row=_md_row, md_columns=_md_columns, url=lambda text: urllib.parse.quote(str(text))
+)
 
 
 def render_html(doc: Document) -> str:
