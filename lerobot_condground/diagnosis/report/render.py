@@ -47,7 +47,9 @@ def _escape_markdown(value) -> Markup:
     if hasattr(value, "__html__"):
         return Markup(value.__html__())
     parts = _CODE_SPAN.split(html.escape(str(value), quote=False))
-    text = "".join(part if i % 2 else _MARKDOWN_PUNCTUATION.sub(r"\\\1", part) for i, part in enumerate(parts))
+    text = "".join(
+        part if i % 2 else _MARKDOWN_PUNCTUATION.sub(r"\\\1", part) for i, part in enumerate(parts)
+    )
     return Markup(_LINE_START.sub(lambda m: f"{m[1] or m[3] or ''}\\{m[2] or m[4]}", text))
 
 
@@ -88,7 +90,10 @@ _HTML.filters.update(code_spans=_code_spans, base64=lambda png: base64.b64encode
 _MARKDOWN = _environment(autoescape=False)
 # A link destination is percent-encoded, not backslash-escaped: parentheses and spaces cannot end it.
 _MARKDOWN.filters.update(
-    md=_escape_markdown, md_row=_md_row, md_columns=_md_columns, url=lambda text: urllib.parse.quote(str(text))
+    md=_escape_markdown,
+    md_row=_md_row,
+    md_columns=_md_columns,
+    url=lambda text: urllib.parse.quote(str(text)),
 )
 
 
