@@ -30,6 +30,20 @@ def check_seed(flag: str, first: int, count: int = 1) -> None:
         raise ValueError(f"{flag}={first} is not allowed; allowed: a seed from 0 to {SEED_LIMIT - count}")
 
 
+def comma_items(text: str, flag: str, separator: str = ",") -> list[str]:
+    """The stripped items of a list flag. An empty item (`a,,b`, a trailing comma) is a typo, not nothing: one
+    error naming the flag, before anything runs. Empty text is no items (the caller says what it needs)."""
+    text = str(text).strip()
+    if not text:
+        return []
+    items = [t.strip() for t in text.split(separator)]
+    if "" in items:
+        raise ValueError(
+            f"{flag}={text!r} has an empty item; allowed: items separated by single {separator!r}, none empty"
+        )
+    return items
+
+
 def check_at_least(group: object, prefix: str, **minimums: float) -> None:
     """Each named field of a config group (flags `--<prefix><name>`) must be at least its minimum; None
     stands for "the default" and passes. NaN fails too."""
@@ -56,8 +70,8 @@ class PolicyRefConfig:
 
     def checkpoints(self) -> list[str]:
         """Every checkpoint named by --policy.path and --policy.paths, in order."""
-        named = [self.path or ""] + (self.paths or "").split(",")
-        return [p.strip() for p in named if p.strip()]
+        one = [self.path.strip()] if self.path and self.path.strip() else []
+        return one + comma_items(self.paths or "", "--policy.paths")
 
     def single(self) -> str:
         """The one checkpoint of a command that reads one."""

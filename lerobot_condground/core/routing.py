@@ -7,6 +7,8 @@ and right as the robot sees them (its base facing the table along +x: left is +y
 
 from __future__ import annotations
 
+from lerobot_condground.core.configs import comma_items
+
 STEPS = ("approach", "pick", "inspect", "route", "place", "retreat", "home")
 SUBGOALS = ("pick", "inspect", "route", "place", "home")
 # The subgoals whose correct destination depends on the instrument's state.
@@ -41,7 +43,7 @@ def instruction(subgoal: str, form: str = "generic", destination: str | None = N
 
 def parse_episodes(text: str) -> tuple[str, ...]:
     """`procedure`, a subgoal, or several of them separated by commas."""
-    items = tuple(t.strip() for t in str(text).split(",") if t.strip())
+    items = tuple(comma_items(text, "subgoal"))
     bad = [t for t in items if t not in EPISODES]
     if not items or bad or len(set(items)) != len(items):
         raise ValueError(

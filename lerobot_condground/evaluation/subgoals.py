@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from lerobot_condground.core import paper
 from lerobot_condground.core.conditions import ROUTING_TASK
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
+from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed, comma_items
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.core.routing import SUBGOALS
@@ -96,7 +96,7 @@ class Trial:
 
 
 def parse_subgoals(text: str) -> list[str]:
-    items = [s.strip() for s in text.split(",") if s.strip()]
+    items = comma_items(text, "--subgoals")
     bad = [s for s in items if s not in SUBGOALS]
     if not items or bad or len(set(items)) != len(items):
         raise ValueError(

@@ -25,7 +25,13 @@ from pathlib import Path
 from tqdm import tqdm
 
 from lerobot_condground.core.conditions import PAPER_GRID, ConditionSpec, check_task
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed, usable_cores
+from lerobot_condground.core.configs import (
+    EvalEnvConfig,
+    PolicyRefConfig,
+    check_seed,
+    comma_items,
+    usable_cores,
+)
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.evaluation.checkpoints import (
@@ -82,9 +88,7 @@ def parse_conditions(text: str) -> list[str]:
     text = text.strip()
     if text == "paper":
         return list(PAPER_GRID)
-    items = [
-        c.strip() for c in (text.split(";") if ";" in text or "=" in text else text.split(",")) if c.strip()
-    ]
+    items = comma_items(text, "--sweep.conditions", ";" if ";" in text or "=" in text else ",")
     names = []
     for item in items:
         name = ConditionSpec.parse(item).name  # unknown names fail here, with the allowed ones

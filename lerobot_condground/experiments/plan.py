@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from lerobot_condground.core.conditions import TASKS, check_task
-from lerobot_condground.core.configs import check_at_least, usable_cores
+from lerobot_condground.core.configs import check_at_least, comma_items, usable_cores
 from lerobot_condground.core.paper import METHODS, TABLE2_COLUMN
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
 from lerobot_condground.core.ur3e import check_servo
@@ -227,7 +227,7 @@ class ReproduceConfig:
 
 
 def _split(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
-    items = [t.strip() for t in text.split(",") if t.strip()]
+    items = comma_items(text, flag)
     for item in items:
         if item not in allowed:
             raise ValueError(f"{flag} holds {item!r}; allowed: {', '.join(allowed)}, separated by commas")

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_condground.core.configs import DatasetRefConfig
+from lerobot_condground.core.configs import DatasetRefConfig, comma_items
 from lerobot_condground.core.labels import (
     OBS_PHASE,
     OBS_PROMPT_OBJECT,
@@ -210,7 +210,7 @@ def _parse_episodes(text: str | None, total: int) -> list[int]:
     if text is None or not str(text).strip():
         return list(range(total))
     try:
-        chosen = sorted({int(p) for p in str(text).strip("[]").split(",") if p.strip()})
+        chosen = sorted({int(p) for p in comma_items(str(text).strip().strip("[]"), "--episodes")})
     except ValueError:
         raise ValueError(
             f"--episodes={text!r} is not a list of episode indices; allowed: e.g. --episodes=0,2,5"

@@ -21,6 +21,12 @@ def parse(args: list[str]) -> tuple[float, list[str]]:
         max_gb = float("nan")
     if not max_gb > 0:
         raise ValueError(f"{FLAG}{sizes[-1]} is not allowed; allowed: a number of GiB > 0")
+    # lerobot-train takes a step count below 1 and trains nothing, saving nothing, without a word.
+    steps = [a.removeprefix("--steps=") for a in args if a.startswith("--steps=")]
+    if steps and not (steps[-1].strip().isdigit() and int(steps[-1]) >= 1):
+        raise ValueError(
+            f"--steps={steps[-1]} is not allowed; allowed: a whole number of training steps >= 1"
+        )
     return max_gb, [a for a in args if not a.startswith(FLAG)]
 
 

@@ -56,6 +56,13 @@ def test_a_bad_budget_is_refused(size):
         FrameCache(max_gb=size)
 
 
+@pytest.mark.parametrize("steps", ["0", "-5", "1.5", "ten"])
+def test_condground_train_refuses_a_step_count_that_trains_nothing(steps, tmp_path):
+    proc = run_cli("condground", "train", f"--steps={steps}", f"--output_dir={tmp_path / 'run'}", check=False)
+    assert proc.returncode == 2 and f"--steps={steps} is not allowed" in proc.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "run").exists()
+
+
 def test_condground_train_is_lerobot_train(recorded_dataset, tmp_path):
     """Same flags as lerobot-train, same checkpoint layout; its one flag of its own is checked first."""
     bad = run_cli("condground", "train", "--frame_cache_gb=lots", check=False)

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import draccus
 
+from lerobot_condground.core.configs import comma_items
+
 
 @dataclass
 class ReportConfig:
@@ -43,7 +45,7 @@ def parse_report_args(argv: list[str]) -> ReportConfig:
         value = value.strip()
         if value.startswith("[") and value.endswith("]"):
             value = value[1:-1]
-        dirs += [v.strip().strip("'\"") for v in value.split(",") if v.strip()]
+        dirs += [v.strip("'\"") for v in comma_items(value, "--input_dir")]
     cfg = draccus.parse(ReportConfig, args=rest, prog="condground report")
     cfg.input_dir = [*cfg.input_dir, *dirs]
     if title is not None:
