@@ -13,6 +13,7 @@ import importlib
 import io
 import logging
 import sys
+from pathlib import Path
 
 import draccus
 
@@ -129,6 +130,22 @@ def _parse(script, args: list[str], prog: str):
         sys.stderr.write(captured.getvalue() if "usage:" not in captured.getvalue() else "")
 
 
+def _check_outputs(cfg) -> None:
+    """An output folder that is an existing file: one line naming the flag, for every command, before any work
+    (mkdir would say only "File exists", and some commands would first load a checkpoint or build envs)."""
+    from lerobot_condground.core.configs import DatasetOutputConfig
+
+    folders = {"--output_dir": getattr(cfg, "output_dir", None)}
+    for name, group in vars(cfg).items() if hasattr(cfg, "__dataclass_fields__") else ():
+        if isinstance(group, DatasetOutputConfig):
+            folders[f"--{name}.root"] = group.root
+    for flag, folder in folders.items():
+        if isinstance(folder, str | Path) and Path(folder).exists() and not Path(folder).is_dir():
+            raise ValueError(
+                f"{flag}={str(folder)!r} is an existing file; allowed: a folder (a new one, or one this command wrote)"
+            )
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
@@ -148,7 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     script = importlib.import_module(f"lerobot_condground.scripts.{COMMANDS[command][0]}")
     prog = f"condground {command}"
     try:
-        script.main(_parse(script, args, prog))
+        cfg = _parse(script, args, prog)
+        _check_outputs(cfg)
+        script.main(cfg)
     except BAD_INPUT as err:
         print(f"{prog}: {_message(err)}", file=sys.stderr)
         return 2

@@ -211,6 +211,42 @@ def test_every_command_reports_bad_input_in_one_line(args, named, tmp_path, monk
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize(
+    "args",
+    [
+        *(
+            [command, "--output_dir=taken"]
+            for command in (
+                "sweep",
+                "subgoals",
+                "probe",
+                "diagnose",
+                "attention",
+                "fit",
+                "failures",
+                "quickstart",
+                "reproduce",
+            )
+        ),
+        ["record", "--dataset.root=taken"],
+        ["augment", "--dataset.root=data", "--output.root=taken"],
+    ],
+)
+def test_an_output_folder_that_is_a_file_is_one_line(args, tmp_path, monkeypatch, capsys):
+    from lerobot_condground.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "taken").write_text("the user's file")
+    assert main(args) == 2
+    lines = [
+        line for line in capsys.readouterr().err.strip().splitlines() if "third-party plugin" not in line
+    ]
+    assert len(lines) == 1 and "='taken' is an existing file; allowed: a folder" in lines[0], lines
+    assert [p.name for p in tmp_path.iterdir()] == ["taken"] and (
+        tmp_path / "taken"
+    ).read_text() == "the user's file"
+
+
 def test_a_group_flag_keeps_the_command_default_of_the_group():
     """draccus rebuilds a group from its class defaults once one of its flags is given: the commands' own
     defaults for shared groups must survive that."""
