@@ -184,6 +184,8 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
         (["record", "--seed=-1"], "--seed=-1 is not allowed"),
         (["record", "--env.fps=abc"], "`env.fps`: Couldn't parse 'abc' into an int"),
         (["record", "--dataset.repo_id=../../x"], "repo_id='../../x' is not a hub id"),
+        (["record", "--dataset.num_episodes=1000000000"], "allowed: 1 to 100000"),
+        (["record", "--seed=999990", "--dataset.num_episodes=20"], "at most 10 episodes from this seed"),
         (["sweep", "--eval.seeds=many"], "many"),
         (["sweep", "--policy.path=x", "--eval.seed_offset=-5"], "--eval.seed_offset=-5 is not allowed"),
         (["diagnose", "--policy.path=x", "--env.condition=full_mix"], "full_mix"),

@@ -12,6 +12,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+# `condground sweep` draws its held-out layouts from this seed on; recordings start at 0 and stay below it.
+HELD_OUT_SEED_OFFSET = 1_000_000
 SEED_LIMIT = 2**63  # seeds are stored in int64 columns (results, provenance); numpy refuses negative ones
 
 

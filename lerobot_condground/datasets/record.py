@@ -24,7 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.core.conditions import ROUTING_TASK
-from lerobot_condground.core.configs import DatasetOutputConfig, check_at_least, check_seed
+from lerobot_condground.core.configs import (
+    HELD_OUT_SEED_OFFSET,
+    DatasetOutputConfig,
+    check_at_least,
+    check_seed,
+)
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.labels import (
     OBS_DESTINATION,
@@ -70,6 +75,10 @@ class RecordDatasetConfig(DatasetOutputConfig):
     checkpoint_every: int = 1
 
 
+# Far beyond any study here, well below what fills a disk unnoticed.
+MAX_EPISODES = 100_000
+
+
 @dataclass
 class RecordConfig:
     env: CondGroundEnvConfig = field(default_factory=CondGroundEnvConfig)
@@ -85,6 +94,17 @@ class RecordConfig:
         check_at_least(self.dataset, "dataset.", num_episodes=1, checkpoint_every=1)
         check_at_least(self, "", max_consecutive_failures=1)
         check_seed("--seed", self.seed, self.dataset.num_episodes)
+        if self.dataset.num_episodes > MAX_EPISODES:
+            raise ValueError(
+                f"--dataset.num_episodes={self.dataset.num_episodes} is not allowed; allowed: 1 to {MAX_EPISODES} "
+                "(at 96x128 about 0.5 MB and 4 s an episode on 2 cores: 50 GB and 5 days at the limit)"
+            )
+        if self.seed < HELD_OUT_SEED_OFFSET < self.seed + self.dataset.num_episodes:
+            raise ValueError(
+                f"--seed={self.seed} with --dataset.num_episodes={self.dataset.num_episodes} is not allowed: the "
+                f"recording's layouts would reach seed {HELD_OUT_SEED_OFFSET}, where `condground sweep` draws its "
+                f"held-out layouts; allowed: at most {HELD_OUT_SEED_OFFSET - self.seed} episodes from this seed"
+            )
 
 
 def dataset_features(env_cfg: CondGroundEnvConfig, video: bool, labels: bool = True) -> dict:

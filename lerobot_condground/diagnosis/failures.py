@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.core.conditions import ROUTING_TASK
-from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
+from lerobot_condground.core.configs import HELD_OUT_SEED_OFFSET, EvalEnvConfig, PolicyRefConfig, check_seed
 from lerobot_condground.core.provenance import command_line, versions
 
 logger = logging.getLogger(__name__)
@@ -54,7 +54,7 @@ TARGET = 1  # the target object's entity label
 @dataclass
 class FailureOptions:
     episodes: int = 50
-    seed_offset: int = 1_000_000  # the sweep's default: its layouts, rollout by rollout
+    seed_offset: int = HELD_OUT_SEED_OFFSET  # the sweep's default: its layouts, rollout by rollout
     batch_size: int = 10
 
 

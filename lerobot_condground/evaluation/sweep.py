@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from lerobot_condground.core.conditions import PAPER_GRID, ConditionSpec, check_task
 from lerobot_condground.core.configs import (
+    HELD_OUT_SEED_OFFSET,
     EvalEnvConfig,
     PolicyRefConfig,
     check_seed,
@@ -64,7 +65,7 @@ class SweepEvalConfig:
     n_episodes: int = 50  # rollouts per evaluation seed
     batch_size: int = 10  # episodes stepped together as one policy batch (one unit of work)
     # Layout seeds are seed_offset + seed * 100000 + episode: away from the recording seeds (0, 1, ...).
-    seed_offset: int = 1_000_000
+    seed_offset: int = HELD_OUT_SEED_OFFSET
 
 
 @dataclass
