@@ -195,6 +195,14 @@ class ReproduceConfig:
                 raise ValueError(
                     f"--train.extra_flags holds {flag!r}; allowed: lerobot-train flags --key=value separated by spaces"
                 )
+            key = flag.split("=", 1)[0]
+            if key in STAGE_TRAIN_FLAGS:
+                instead = STAGE_TRAIN_FLAGS[key]
+                raise ValueError(
+                    f"--train.extra_flags holds {flag!r}, which each training stage sets itself after the extra "
+                    f"flags (it would be ignored); allowed: any other lerobot-train flag"
+                    + (f"; use {instead} instead" if instead else "")
+                )
         self.condition_lists()
 
     def task_list(self) -> list[str]:
@@ -224,6 +232,27 @@ class ReproduceConfig:
         settings["train"].pop("variants")
         settings["policy_flags"] = self.policy_flags()
         return settings
+
+
+# lerobot-train flags a training stage sets after --train.extra_flags, with the reproduce flag that sets each.
+STAGE_TRAIN_FLAGS = {
+    "--policy.type": None,
+    "--policy.variant": "--train.variants",
+    "--policy.device": "--train.device",
+    "--policy.push_to_hub": None,
+    "--dataset.repo_id": None,
+    "--dataset.root": None,
+    "--batch_size": "--train.batch_size",
+    "--steps": "--train.steps",
+    "--save_freq": "--train.save_freq",
+    "--log_freq": None,
+    "--num_workers": "--train.num_workers",
+    "--wandb.enable": None,
+    "--seed": "--train.seeds",
+    "--output_dir": "--output_dir",
+    "--config_path": None,
+    "--resume": None,
+}
 
 
 def _split(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:

@@ -74,6 +74,11 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         ("--eval.conditions=clean,nope", "Unknown condition 'nope'"),
         ("--train.steps=0", "--train.steps=0 is not allowed"),
         ("--train.extra_flags=dim_model=3", "--train.extra_flags holds 'dim_model=3'"),
+        (
+            "--train.extra_flags=--output_dir=/tmp/x",
+            "sets itself after the extra flags (it would be ignored)",
+        ),
+        ("--train.extra_flags=--steps=5", "use --train.steps instead"),
         ("--jobs=0", "--jobs=0 is not allowed"),
         ("--env.servo=fast", "--env.servo='fast' is not allowed; allowed: interpolated, direct"),
     ],
