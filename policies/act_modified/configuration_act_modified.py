@@ -15,6 +15,7 @@ weight stays overridable after the preset, e.g.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType
@@ -162,6 +163,9 @@ class ACTModifiedConfig(ACTConfig):
                 f"backbone_layer={self.backbone_layer!r} with replace_final_stride_with_dilation=true: the dilation "
                 "is in layer4, which the cut drops; allowed: one of the two"
             )
+        if self.init_from_act and Path(self.init_from_act).exists():
+            # Saved into config.json: relative, it would name another folder from wherever the run is resumed.
+            self.init_from_act = str(Path(self.init_from_act).resolve())
         if self.scheduler_name not in SCHEDULERS:
             raise ValueError(
                 f"scheduler_name={self.scheduler_name!r} is not allowed; allowed: {', '.join(SCHEDULERS)}"

@@ -434,7 +434,7 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
     )
 
 
-def test_warm_start_from_a_stock_act_checkpoint(tmp_path):
+def test_warm_start_from_a_stock_act_checkpoint(tmp_path, monkeypatch):
     torch.manual_seed(1)
     act = ACTPolicy(
         ACTConfig(
@@ -447,6 +447,11 @@ def test_warm_start_from_a_stock_act_checkpoint(tmp_path):
     for name, value in act.state_dict().items():
         assert torch.equal(ours[name], value), name
     assert any(name.startswith("model.phase_head") for name in ours)
+    # A relative folder is stored resolved: config.json must name the same folder from any working directory.
+    monkeypatch.chdir(tmp_path)
+    assert make_policy(variant="full", init_from_act="act").config.init_from_act == str(
+        (tmp_path / "act").resolve()
+    )
     # Reloading the act_modified checkpoint uses its own weights, not the warm start again.
     (tmp_path / "act" / "model.safetensors").unlink()
     warm.save_pretrained(tmp_path / "ours")
