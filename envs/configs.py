@@ -9,6 +9,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from lerobot_condground.core.conditions import ROUTING_TASK, ConditionSpec, check_env_task
+from lerobot_condground.core.configs import ConfigError
 from lerobot_condground.core.labels import OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE
 from lerobot_condground.core.routing import INSTRUCTION_FORMS, parse_episodes
 
@@ -67,10 +68,17 @@ class CondGroundEnvConfig(EnvConfig):
     )
 
     def __post_init__(self):
-        # Bad names and sizes fail here, when the command line is parsed, before any work starts.
+        # Bad names and sizes fail here, when the command line is parsed, before any work starts; under the
+        # stock scripts as one line (ConfigError), not inside draccus's traceback.
+        try:
+            self._validate()
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+
+    def _validate(self):
         from lerobot_condground.core.ur3e import check_servo
 
-        from .arm_env import OBS_TYPES, check_resolution
+        from .arm_env import OBS_TYPES, check_fps, check_resolution
 
         check_env_task(self.task)
         ConditionSpec.parse(self.condition)
@@ -107,6 +115,7 @@ class CondGroundEnvConfig(EnvConfig):
             self.prompts = not routing
         check_resolution(self.observation_height, self.observation_width)
         check_servo(self.servo, "--env.servo")
+        check_fps(self.fps)
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if self.episode_length < 1:

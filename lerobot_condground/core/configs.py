@@ -12,9 +12,21 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import draccus
+
 # `condground sweep` draws its held-out layouts from this seed on; recordings start at 0 and stay below it.
 HELD_OUT_SEED_OFFSET = 1_000_000
 SEED_LIMIT = 2**63  # seeds are stored in int64 columns (results, provenance); numpy refuses negative ones
+
+
+class ConfigError(draccus.utils.DecodingError):
+    """A bad value found by a config's `__post_init__`, for configs the stock scripts parse (`--env.*`,
+    `--robot.*`). draccus wraps a ValueError raised there into its generic "Couldn't instantiate class" at
+    the end of a long traceback; this one it passes on, and LeRobot's scripts print it as one line,
+    `error: <message>`. Not a ValueError for that reason; `condground` reports it like one."""
+
+    def __init__(self, message: str):
+        super().__init__((), message)
 
 
 def usable_cores() -> int:

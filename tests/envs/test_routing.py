@@ -128,13 +128,14 @@ def test_bad_subgoals_and_forms_are_refused(call, message):
 
 
 def test_env_config_flags_that_do_not_apply_are_refused():
+    from lerobot_condground.core.configs import ConfigError
     from lerobot_condground.envs.configs import CondGroundEnvConfig
 
     with pytest.raises(
-        ValueError, match="--env.condition='full_mixed' does not apply to InstrumentRouting-v0"
+        ConfigError, match="--env.condition='full_mixed' does not apply to InstrumentRouting-v0"
     ):
         CondGroundEnvConfig(task="InstrumentRouting-v0", condition="full_mixed")
-    with pytest.raises(ValueError, match="--env.subgoal='route' applies to InstrumentRouting-v0 only"):
+    with pytest.raises(ConfigError, match="--env.subgoal='route' applies to InstrumentRouting-v0 only"):
         CondGroundEnvConfig(task="PickPlaceRandomBin-v0", subgoal="route")
     cfg = CondGroundEnvConfig(task="InstrumentRouting-v0")
     assert cfg.wrist_camera and not cfg.prompts and "pixels/wrist" in cfg.features
