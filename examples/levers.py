@@ -15,7 +15,9 @@ an earlier row of the same lever and task) and every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`). With --heldout, `condground fit` of each run's last checkpoint on its first
 training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
-seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success.
+seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
+`condground failures` classifies each failed rollout of each run's last checkpoint on the held-out layouts
+(`<csv stem>_failures.csv`: counts per cause, grasp offsets at closing).
 """
 
 from __future__ import annotations
@@ -258,6 +260,58 @@ def fit_all(args, arms: dict[str, list[str]]) -> None:
     print(overall.groupby(["lever", "layouts", "segment"])[["l1", "tcp_cm", "base_rad"]].mean().to_string())
 
 
+def failures_all(args, arms: dict[str, list[str]]) -> None:
+    """`condground failures` of every run's last checkpoint on the held-out layouts: each failure's cause."""
+    import json
+
+    todo, rows = [], []
+    for arm in arms:
+        for seed in args.seeds:
+            out = args.out / "failures" / run_dir(args, arm, seed).name
+            todo.append((arm, seed, out))
+    queue = [t for t in todo if not (t[2] / "failures.json").exists()]
+    running: list[subprocess.Popen] = []
+    while queue or running:
+        while queue and len(running) < args.jobs:
+            arm, seed, out = queue.pop(0)
+            running.append(
+                subprocess.Popen(
+                    [
+                        "condground",
+                        "failures",
+                        f"--policy.path={checkpoint(run_dir(args, arm, seed), args.steps)}",
+                        f"--env.task={args.task}",
+                        f"--env.servo={args.servo}",
+                        f"--failures.episodes={args.episodes}",
+                        f"--failures.seed_offset={args.seed_offset}",
+                        f"--output_dir={out}",
+                        "--progress=false",
+                    ],
+                    stdout=subprocess.DEVNULL,
+                )  # fmt: skip
+            )
+        time.sleep(2)
+        for process in [p for p in running if p.poll() is not None]:
+            running.remove(process)
+            if process.returncode:
+                raise SystemExit(f"a failures run failed: {shlex.join(process.args)}")
+    for arm, seed, out in todo:
+        result = json.loads((out / "failures.json").read_text())
+        offsets = result["first_close_offset_cm"]
+        rows.append(
+            {"lever": arm, "task": args.task, "seed": seed, "step": args.steps, "rollouts": result["rollouts"],
+             **result["causes"], "regrasped": result["regrasped"], "stalled": result["stalled"],
+             "close_offset_cm_success": offsets["success_median"], "close_offset_cm_failure": offsets["failure_median"]}
+        )  # fmt: skip
+    path = args.csv.with_name(f"{args.csv.stem}_failures.csv")
+    mine = pd.DataFrame(rows)
+    if path.exists():
+        old = pd.read_csv(path)
+        mine = pd.concat([old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))], mine])
+    mine.to_csv(path, index=False, float_format="%.2f")
+    print(pd.DataFrame(rows).to_string(index=False))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -286,7 +340,9 @@ def main() -> None:
     )
     parser.add_argument("--heldout", type=Path, help="a held-out recording of the task (the fit stage)")
     parser.add_argument("--fit_episodes", default="0:20", help="training episodes the fit stage reads")
-    parser.add_argument("--stage", choices=("all", "train", "evaluate", "analyse", "fit"), default="all")
+    parser.add_argument(
+        "--stage", choices=("all", "train", "evaluate", "analyse", "fit", "failures"), default="all"
+    )
     args = parser.parse_args()
     if not args.lever:
         parser.error("give at least one --lever=NAME=FLAGS")
@@ -301,6 +357,8 @@ def main() -> None:
         analyse(args, arms)
     if args.stage in ("all", "fit") and args.heldout is not None:
         fit_all(args, arms)
+    if args.stage in ("all", "failures"):
+        failures_all(args, arms)
 
 
 if __name__ == "__main__":
