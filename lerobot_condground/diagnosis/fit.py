@@ -153,7 +153,7 @@ def format_fit(result: dict) -> str:
 
 
 def _load(cfg: FitConfig):
-    """(policy, preprocessor, postprocessor, dataset, described checkpoint, episodes) after every check."""
+    """(policy, preprocessor, postprocessor, dataset, described checkpoint, episodes, steps compared), checked."""
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
