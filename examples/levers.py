@@ -143,6 +143,26 @@ def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
     return frame.sort_values("layout_seed").reset_index(drop=True)
 
 
+def plot_checkpoints(rows: pd.DataFrame, path: Path) -> None:
+    """Held-out success of every evaluated checkpoint, one colour per lever, one marker per seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for i, (lever, runs) in enumerate(rows.groupby("lever", sort=False)):
+        for j, (seed, run) in enumerate(runs.groupby("seed")):
+            run = run.sort_values("step")
+            ax.errorbar(run["step"] + 40 * (i - 1), run["success"] * 100,
+                        yerr=[(run["success"] - run["ci_low"]) * 100, (run["ci_high"] - run["success"]) * 100],
+                        color=f"C{i}", marker="os^v"[j % 4], capsize=2, label=f"{lever}, seed {seed}")  # fmt: skip
+    ax.set(xlabel="training steps", ylabel="held-out clean success (%)", title=str(rows["task"].iloc[0]))
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def analyse(args, arms: dict[str, list[str]]) -> None:
     steps = pooled_steps(args)
     per_checkpoint, pooled = [], {}
@@ -188,6 +208,9 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
         old = old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))]
         mine = pd.concat([old, mine], ignore_index=True)
     mine.to_csv(checkpoints_csv, index=False, float_format="%.4f")
+    plot_checkpoints(
+        mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png")
+    )
     print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
     if args.train_layouts:
         fit_vs_heldout(args, arms)
