@@ -15,6 +15,7 @@ forward, backward, gradient clipping, AdamW. Every policy trains on its own load
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import statistics
 import time
 from dataclasses import dataclass
@@ -59,7 +60,8 @@ def _configs(cfg: TrainBenchConfig, features: dict) -> dict:
     configs = {name: ACTModifiedConfig(variant=name, **policy) for name in VARIANTS}
     configs["full_uncached"] = ACTModifiedConfig(variant="full", **policy)
     configs["full_plain"] = ACTModifiedConfig(variant="full", **(policy | PLAIN))
-    stock = {k: v for k, v in policy.items() if k not in ("backbone_width", "backbone_norm")}
+    # Stock ACT takes the configuration's fields it has (not the narrow backbone, its norm or the schedule).
+    stock = {k: v for k, v in policy.items() if k in {f.name for f in dataclasses.fields(ACTConfig)}}
     inputs = {  # stock ACT takes state and cameras; the label strings stay in the batch, unread
         key: feature
         for key, feature in dataset_to_policy_features(features).items()
