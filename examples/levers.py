@@ -117,25 +117,30 @@ def evaluate_all(args, arms: dict[str, list[str]]) -> None:
             if not (out / "results.parquet").exists():
                 todo.append((checkpoint(run_dir(args, arm, seed), args.steps), out))
     # One sweep per checkpoint (resumable one by one), --jobs of them at once on one worker each.
-    queue = list(todo)
-    running: list[subprocess.Popen] = []
+    commands = []
+    for ckpt, out in todo:
+        own_layouts = out.parts[-3] == "eval_train"
+        commands.append([
+            "condground", "sweep", f"--policy.paths={ckpt}", f"--env.task={args.task}",
+            f"--env.servo={args.servo}", "--sweep.conditions=clean", "--eval.seeds=1",
+            f"--eval.n_episodes={args.train_layouts if own_layouts else args.episodes}",
+            f"--eval.seed_offset={0 if own_layouts else args.seed_offset}", "--workers=1",
+            f"--output_dir={out}", "--progress=false",
+        ])  # fmt: skip
+    run_all(commands, args.jobs)
+
+
+def run_all(commands: list[list[str]], jobs: int) -> None:
+    """Runs the commands, `jobs` at a time; stops at the first that fails."""
+    queue, running = list(commands), []
     while queue or running:
-        while queue and len(running) < args.jobs:
-            ckpt, out = queue.pop(0)
-            own_layouts = out.parts[-3] == "eval_train"
-            command = [
-                "condground", "sweep", f"--policy.paths={ckpt}", f"--env.task={args.task}",
-                f"--env.servo={args.servo}", "--sweep.conditions=clean", "--eval.seeds=1",
-                f"--eval.n_episodes={args.train_layouts if own_layouts else args.episodes}",
-                f"--eval.seed_offset={0 if own_layouts else args.seed_offset}", "--workers=1",
-                f"--output_dir={out}", "--progress=false",
-            ]  # fmt: skip
-            running.append(subprocess.Popen(command, stdout=subprocess.DEVNULL))
+        while queue and len(running) < jobs:
+            running.append(subprocess.Popen(queue.pop(0), stdout=subprocess.DEVNULL))
         time.sleep(2)
         for process in [p for p in running if p.poll() is not None]:
             running.remove(process)
             if process.returncode:
-                raise SystemExit(f"a sweep failed: {shlex.join(process.args)}")
+                raise SystemExit(f"failed: {shlex.join(process.args)}")
 
 
 def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
@@ -292,32 +297,16 @@ def failures_all(args, arms: dict[str, list[str]]) -> None:
         for seed in args.seeds:
             out = args.out / "failures" / run_dir(args, arm, seed).name
             todo.append((arm, seed, out))
-    queue = [t for t in todo if not (t[2] / "failures.json").exists()]
-    running: list[subprocess.Popen] = []
-    while queue or running:
-        while queue and len(running) < args.jobs:
-            arm, seed, out = queue.pop(0)
-            running.append(
-                subprocess.Popen(
-                    [
-                        "condground",
-                        "failures",
-                        f"--policy.path={checkpoint(run_dir(args, arm, seed), args.steps)}",
-                        f"--env.task={args.task}",
-                        f"--env.servo={args.servo}",
-                        f"--failures.episodes={args.episodes}",
-                        f"--failures.seed_offset={args.seed_offset}",
-                        f"--output_dir={out}",
-                        "--progress=false",
-                    ],
-                    stdout=subprocess.DEVNULL,
-                )  # fmt: skip
-            )
-        time.sleep(2)
-        for process in [p for p in running if p.poll() is not None]:
-            running.remove(process)
-            if process.returncode:
-                raise SystemExit(f"a failures run failed: {shlex.join(process.args)}")
+    run_all(
+        [
+            ["condground", "failures", f"--policy.path={checkpoint(run_dir(args, arm, seed), args.steps)}",
+             f"--env.task={args.task}", f"--env.servo={args.servo}", f"--failures.episodes={args.episodes}",
+             f"--failures.seed_offset={args.seed_offset}", f"--output_dir={out}", "--progress=false"]
+            for arm, seed, out in todo
+            if not (out / "failures.json").exists()
+        ],
+        args.jobs,
+    )  # fmt: skip
     for arm, seed, out in todo:
         result = json.loads((out / "failures.json").read_text())
         offsets = result["first_close_offset_cm"]
