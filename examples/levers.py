@@ -143,6 +143,19 @@ def run_all(commands: list[list[str]], jobs: int) -> None:
                 raise SystemExit(f"failed: {shlex.join(process.args)}")
 
 
+def merge_csv(path: Path, rows: list[dict], task: str, names, column: str = "lever", fmt: str = "%.4f"):
+    """Writes `rows` to `path` in place of its earlier rows of these names on this task; returns the table."""
+    table = pd.DataFrame(rows)
+    if path.exists():
+        old = pd.read_csv(path)
+        table = pd.concat(
+            [old[~(old["task"].eq(task) & old[column].isin(list(names)))], table], ignore_index=True
+        )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table.to_csv(path, index=False, float_format=fmt)
+    return table
+
+
 def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
     frame = read_table(args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}" / "results.parquet")
     return frame.sort_values("layout_seed").reset_index(drop=True)
@@ -199,20 +212,9 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
              "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.steps,
              "checkpoints": " ".join(map(str, steps))}
         )  # fmt: skip
-    args.csv.parent.mkdir(parents=True, exist_ok=True)
-    table = pd.DataFrame(rows)
-    if args.csv.exists():
-        old = pd.read_csv(args.csv)
-        keep = ~old.set_index(["lever", "task"]).index.isin(table.set_index(["lever", "task"]).index)
-        table = pd.concat([old[keep], table], ignore_index=True)
-    table.to_csv(args.csv, index=False, float_format="%.4f")
+    merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows])
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
-    mine = pd.DataFrame(per_checkpoint)
-    if checkpoints_csv.exists():
-        old = pd.read_csv(checkpoints_csv)
-        old = old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))]
-        mine = pd.concat([old, mine], ignore_index=True)
-    mine.to_csv(checkpoints_csv, index=False, float_format="%.4f")
+    mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, arms)
     plot_checkpoints(
         mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png")
     )
@@ -243,13 +245,7 @@ def fit_vs_heldout(args, arms: dict[str, list[str]]) -> None:
                  "success": r["rate"], "n": r["n"], "ci_low": r["low"], "ci_high": r["high"],
                  "seeds": len(args.seeds)}
             )  # fmt: skip
-    path = args.fit_vs_heldout_csv
-    mine = pd.DataFrame(rows)
-    if path.exists():
-        old = pd.read_csv(path)
-        mine = pd.concat([old[~(old["task"].eq(args.task) & old["config"].isin(list(arms)))], mine])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mine.to_csv(path, index=False, float_format="%.4f")
+    merge_csv(args.fit_vs_heldout_csv, rows, args.task, arms, column="config")
     print(pd.DataFrame(rows).to_string(index=False))
 
 
@@ -278,12 +274,7 @@ def fit_all(args, arms: dict[str, list[str]]) -> None:
                          "tcp_cm_p90": row["tcp_cm_p90"], "base_rad": row["joint_rad"][0],
                          "wrist3_rad": row["joint_rad"][5], "gripper": row["gripper"]}
                     )  # fmt: skip
-    fit_csv = args.csv.with_name(f"{args.csv.stem}_fit.csv")
-    mine = pd.DataFrame(rows)
-    if fit_csv.exists():
-        old = pd.read_csv(fit_csv)
-        mine = pd.concat([old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))], mine])
-    mine.to_csv(fit_csv, index=False, float_format="%.4f")
+    mine = merge_csv(args.csv.with_name(f"{args.csv.stem}_fit.csv"), rows, args.task, arms)
     overall = mine[mine["segment"].isin(["all", "grasp"]) & mine["task"].eq(args.task)]
     print(overall.groupby(["lever", "layouts", "segment"])[["l1", "tcp_cm", "base_rad"]].mean().to_string())
 
@@ -315,12 +306,7 @@ def failures_all(args, arms: dict[str, list[str]]) -> None:
              **result["causes"], "regrasped": result["regrasped"], "stalled": result["stalled"],
              "close_offset_cm_success": offsets["success_median"], "close_offset_cm_failure": offsets["failure_median"]}
         )  # fmt: skip
-    path = args.csv.with_name(f"{args.csv.stem}_failures.csv")
-    mine = pd.DataFrame(rows)
-    if path.exists():
-        old = pd.read_csv(path)
-        mine = pd.concat([old[~(old["task"].eq(args.task) & old["lever"].isin(list(arms)))], mine])
-    mine.to_csv(path, index=False, float_format="%.2f")
+    merge_csv(args.csv.with_name(f"{args.csv.stem}_failures.csv"), rows, args.task, arms, fmt="%.2f")
     print(pd.DataFrame(rows).to_string(index=False))
 
 
