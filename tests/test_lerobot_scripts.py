@@ -96,8 +96,8 @@ def test_bad_env_flags_are_the_last_line_under_lerobot_eval(stock_act_checkpoint
 
 @pytest.fixture(scope="module")
 def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
-    """The full act_modified variant trained 3 steps by the stock lerobot-train, with its periodic env eval
-    and the cosine learning-rate schedule of its training preset."""
+    """The full act_modified variant trained 3 steps by the stock lerobot-train, with its periodic env eval,
+    the cosine learning-rate schedule of its training preset and a moving average of its weights."""
     out = tmp_path_factory.mktemp("train_modified") / "run"
     tiny = [a.replace("--policy.type=act", "--policy.type=act_modified") for a in TINY_ACT]
     run_cli(
@@ -107,6 +107,7 @@ def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
         "--policy.n_vae_encoder_layers=1",
         "--policy.scheduler_name=cosine",
         "--policy.scheduler_warmup_steps=1",
+        "--policy.ema_decay=0.9",
         "--dataset.repo_id=local/test_full_mixed",
         f"--dataset.root={recorded_dataset}",
         "--batch_size=2",
@@ -148,6 +149,18 @@ def test_act_modified_cosine_schedule_anneals_to_zero_at_the_last_step(act_modif
     # Two parameter groups (backbone and the rest), both annealed to zero by step 3 of 3.
     assert len(state["base_lrs"]) == 2 and all(lr > 0 for lr in state["base_lrs"])
     assert state["_last_lr"] == [0.0, 0.0]
+
+
+def test_lerobot_train_updates_the_moving_average_after_every_step(act_modified_checkpoint):
+    import torch
+    from safetensors.torch import load_file
+
+    weights = load_file(act_modified_checkpoint / "model.safetensors")
+    assert weights["ema_updates"].item() == 3
+    raw = {k: v for k, v in weights.items() if k.startswith("model.")}
+    assert raw.keys() == {k.replace("ema_model.", "model.", 1) for k in weights if k.startswith("ema_model.")}
+    moved = [k for k, v in raw.items() if v.is_floating_point() and not torch.equal(v, weights["ema_" + k])]
+    assert moved, "the average never trailed the trained weights"
 
 
 def test_stock_lerobot_eval_runs_act_modified(act_modified_checkpoint, tmp_path):

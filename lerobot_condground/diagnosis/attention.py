@@ -29,7 +29,7 @@ import numpy as np
 
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
 from lerobot_condground.core.provenance import command_line, versions
-from lerobot_condground.diagnosis.hooks import ACTProbe, load_act_family
+from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, load_act_family
 
 logger = logging.getLogger(__name__)
 
@@ -261,8 +261,9 @@ def run_attention(cfg: AttentionConfig) -> Path:
     loaded, spec = load_act_family(cfg.policy, cfg.env)
     policy = loaded.policy
     target = resolve_target(policy.config, opts)
-    mha = policy.model.decoder.layers[target.layer].multihead_attn
-    has_phase_head = hasattr(policy.model, "phase_head")
+    model = acting_model(policy)
+    mha = model.decoder.layers[target.layer].multihead_attn
+    has_phase_head = hasattr(model, "phase_head")
 
     out = Path(cfg.output_dir)
     (out / "stills").mkdir(parents=True, exist_ok=True)
@@ -270,9 +271,9 @@ def run_attention(cfg: AttentionConfig) -> Path:
         old.unlink()
     video = VideoWriter(out / "attention.mp4", spec.fps, codec)
     env = spec.make()
-    probe = ACTProbe(policy.model, attention_layer=target.layer)
+    probe = ACTProbe(model, attention_layer=target.layer)
     model_calls = [0]
-    counter = policy.model.register_forward_hook(lambda *_: model_calls.__setitem__(0, model_calls[0] + 1))
+    counter = model.register_forward_hook(lambda *_: model_calls.__setitem__(0, model_calls[0] + 1))
     record = {
         "phase": [],
         "phase_probability": [],

@@ -39,7 +39,7 @@ import numpy as np
 from lerobot_condground.core import paper
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
 from lerobot_condground.core.provenance import command_line, versions
-from lerobot_condground.diagnosis.hooks import ACTProbe, check_condition, load_act_family
+from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, check_condition, load_act_family
 
 logger = logging.getLogger(__name__)
 
@@ -283,7 +283,7 @@ def collect_matched(
     }
     expert_success, steps_run = [], []
     try:
-        with ACTProbe(loaded.policy.model) as probe:
+        with ACTProbe(acting_model(loaded.policy)) as probe:
             collector = _Collector(loaded, probe, batch_size)
             for pair, seed in enumerate(tqdm(seeds, desc="matched pairs", unit="pair", disable=not progress)):
                 obs_ref, _ = reference_env.reset(seed=int(seed))

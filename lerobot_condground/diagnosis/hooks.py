@@ -88,8 +88,13 @@ def model_inputs(policy, batch: dict) -> dict:
     return inputs
 
 
+def acting_model(policy):
+    """The model whose weights act: act_modified's moving average when it keeps one, else `policy.model`."""
+    return getattr(policy, "acting_model", policy.model)
+
+
 class ACTProbe:
-    """Forward hooks on an ACT-family model (`policy.model`) for one forward pass at a time.
+    """Forward hooks on an ACT-family model (`acting_model(policy)`) for one forward pass at a time.
 
     Captures per camera the backbone feature map (only for the camera images of the batch, not for
     prompt crops that act_modified passes through the same backbone), the encoder output, the
@@ -152,7 +157,7 @@ class ACTProbe:
         inputs = model_inputs(policy, batch)
         self._cameras = list(inputs.get(OBS_IMAGES, []))
         try:
-            out = policy.model(inputs)
+            out = acting_model(policy)(inputs)
         finally:
             self._cameras = []
         self.forward_passes += 1

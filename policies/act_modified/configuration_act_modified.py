@@ -117,6 +117,10 @@ class ACTModifiedConfig(ACTConfig):
     # cosine needs `--steps` to be the run's real budget: the rate reaches zero there.
     scheduler_name: str = "constant"
     scheduler_warmup_steps: int = 500
+    # Exponential moving average of the weights, updated after every optimizer step (decay warmed up as
+    # diffusion policy does: min(ema_decay, (1 + t) / (10 + t))). The average is what acts and what the
+    # diagnosis reads; the raw weights keep training. None trains without one.
+    ema_decay: float | None = None
 
     # Warm start: a stock `act` (or `act_modified`) checkpoint, local directory or hub id, whose
     # weights initialize the shared ACT parameters; the new heads start fresh.
@@ -172,6 +176,8 @@ class ACTModifiedConfig(ACTConfig):
             )
         if self.scheduler_warmup_steps < 0:
             raise ValueError(f"scheduler_warmup_steps={self.scheduler_warmup_steps} must be >= 0")
+        if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay={self.ema_decay} must be in (0, 1), or null for no moving average")
         if self.backbone_width != 64:
             self._check_narrow_backbone()
         if self.use_copy_paste:

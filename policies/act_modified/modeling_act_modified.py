@@ -21,6 +21,7 @@ Design choices:
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import logging
 import math
@@ -349,6 +350,30 @@ class ACTModifiedPolicy(ACTPolicy):
         self.reset()
         if config.init_from_act and not ACTModifiedPolicy._loading_checkpoint:
             self.warm_start_from(config.init_from_act)
+        self.ema_model = None
+        if config.ema_decay is not None:
+            # A frozen copy: ACT's optimizer groups take only parameters that require grad. Saved in the
+            # checkpoint with its update count, so a resumed run continues the same average.
+            self.ema_model = copy.deepcopy(self.model).requires_grad_(False)
+            self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
+
+    @property
+    def acting_model(self) -> ACTModified:
+        """The weights that act: the moving average when the policy keeps one."""
+        return self.model if self.ema_model is None else self.ema_model
+
+    @torch.no_grad()
+    def update(self) -> None:
+        """Called by lerobot-train after each optimizer step."""
+        if self.ema_model is None:
+            return
+        t = self.ema_updates.item()
+        decay = min(self.config.ema_decay, (1 + t) / (10 + t))
+        for ema, raw in zip(self.ema_model.parameters(), self.model.parameters(), strict=True):
+            ema.lerp_(raw.detach(), 1.0 - decay)
+        for ema, raw in zip(self.ema_model.buffers(), self.model.buffers(), strict=True):
+            ema.copy_(raw)  # batch-norm statistics follow the raw model's
+        self.ema_updates += 1
 
     @classmethod
     def from_pretrained(cls, *args, **kwargs):
@@ -399,7 +424,7 @@ class ACTModifiedPolicy(ACTPolicy):
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor]) -> Tensor:
         self.eval()
-        return self.model(self._images_listed(batch))[0]
+        return self.acting_model(self._images_listed(batch))[0]
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
         cfg = self.config

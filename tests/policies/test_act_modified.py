@@ -375,6 +375,7 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         ),
         (dict(scheduler_name="linear"), "scheduler_name='linear'.*constant, cosine"),
         (dict(scheduler_warmup_steps=-1), "scheduler_warmup_steps=-1"),
+        (dict(ema_decay=1.0), r"ema_decay=1.0 must be in \(0, 1\)"),
         (
             dict(backbone_norm="groupnorm", pretrained_backbone_weights="ResNet18_Weights.IMAGENET1K_V1"),
             "groupnorm",
@@ -432,6 +433,33 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
     torch.testing.assert_close(
         act(loaded, loaded_pre, loaded_post), act(policy, preprocessor, postprocessor), rtol=0, atol=0
     )
+
+
+def test_moving_average_trails_the_weights_acts_and_survives_a_checkpoint(tmp_path):
+    policy = make_policy(variant="standard", ema_decay=0.5)
+    optimizer = torch.optim.AdamW([g for group in policy.get_optim_params() for g in group["params"]], lr=1e-2)
+    assert not any(p is e for p in optimizer.param_groups[0]["params"] for e in policy.ema_model.parameters())
+    raw, ema = policy.model.vae_encoder_action_input_proj.weight, policy.ema_model.vae_encoder_action_input_proj.weight
+    for step in range(3):
+        before = ema.detach().clone()
+        policy.train()
+        policy.forward(make_batch(step))[0].backward()
+        optimizer.step()
+        optimizer.zero_grad()
+        policy.update()
+        decay = min(0.5, (1 + step) / (10 + step))  # 0.1, 0.18, 0.25: warmed up
+        torch.testing.assert_close(ema, decay * before + (1 - decay) * raw.detach())
+    assert policy.ema_updates.item() == 3 and not torch.equal(ema, raw)
+
+    obs = observation(make_batch())
+    policy.eval()
+    with torch.no_grad():
+        expected = policy.ema_model(policy._images_listed(obs))[0]
+    torch.testing.assert_close(policy.predict_action_chunk(obs), expected, rtol=0, atol=0)
+    policy.save_pretrained(tmp_path)
+    loaded = ACTModifiedPolicy.from_pretrained(tmp_path)
+    assert loaded.ema_updates.item() == 3
+    torch.testing.assert_close(loaded.predict_action_chunk(obs), expected, rtol=0, atol=0)
 
 
 def test_warm_start_from_a_stock_act_checkpoint(tmp_path, monkeypatch):
