@@ -437,9 +437,14 @@ def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
 
 def test_moving_average_trails_the_weights_acts_and_survives_a_checkpoint(tmp_path):
     policy = make_policy(variant="standard", ema_decay=0.5)
-    optimizer = torch.optim.AdamW([g for group in policy.get_optim_params() for g in group["params"]], lr=1e-2)
+    optimizer = torch.optim.AdamW(
+        [g for group in policy.get_optim_params() for g in group["params"]], lr=1e-2
+    )
     assert not any(p is e for p in optimizer.param_groups[0]["params"] for e in policy.ema_model.parameters())
-    raw, ema = policy.model.vae_encoder_action_input_proj.weight, policy.ema_model.vae_encoder_action_input_proj.weight
+    raw, ema = (
+        policy.model.vae_encoder_action_input_proj.weight,
+        policy.ema_model.vae_encoder_action_input_proj.weight,
+    )
     for step in range(3):
         before = ema.detach().clone()
         policy.train()
