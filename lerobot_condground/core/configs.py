@@ -14,6 +14,8 @@ from pathlib import Path
 
 import draccus
 
+from lerobot_condground.core.trust import check_dataset_paths
+
 # `condground sweep` draws its held-out layouts from this seed on; recordings start at 0 and stay below it.
 HELD_OUT_SEED_OFFSET = 1_000_000
 SEED_LIMIT = 2**63  # seeds are stored in int64 columns (results, provenance); numpy refuses negative ones
@@ -122,8 +124,12 @@ class DatasetRefConfig:
     root: str | None = None
 
     def path(self) -> Path:
-        if self.root:
-            return Path(self.root)
+        """The dataset's root, once its own metadata is known to keep every file inside it."""
+        root = Path(self.root) if self.root else self._home_path()
+        check_dataset_paths(root)
+        return root
+
+    def _home_path(self) -> Path:
         if not self.repo_id:
             raise ValueError("a dataset needs --dataset.repo_id or --dataset.root")
         from huggingface_hub.errors import HFValidationError

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from lerobot_condground.core.files import read_json_object
+from lerobot_condground.core.trust import OPT_IN, check_state_file, check_step
 
 EXPERT = "expert"
 CAMERA_PREFIX = "observation.images."
@@ -85,8 +86,8 @@ def checkpoint_file(path: str, name: str) -> Path | None:
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 
 
-def processor_steps(path: str) -> list[tuple[Path, dict]]:
-    """Every step of the checkpoint's processor pipelines, with the file that lists it."""
+def processor_steps(path: str) -> list[tuple[Path, int, dict]]:
+    """Every step of the checkpoint's processor pipelines, with the file that lists it and its index there."""
     steps = []
     for name in PROCESSOR_FILES:
         file = checkpoint_file(path, name)
@@ -95,40 +96,41 @@ def processor_steps(path: str) -> list[tuple[Path, dict]]:
         listed = read_json_object(file, "Processor file").get("steps")
         if not isinstance(listed, list) or not all(isinstance(step, dict) for step in listed):
             raise ValueError(f"Processor file {file} has no list of steps; the checkpoint is damaged")
-        steps += [(file, step) for step in listed]
+        steps += [(file, index, step) for index, step in enumerate(listed)]
     return steps
 
 
 def check_processor_steps(path: str, trust_remote_code: bool) -> None:
-    """Refuses a checkpoint whose pipelines name code outside LeRobot's processor registry.
+    """Refuses a checkpoint whose pipelines would load code, or read files outside its folder (trust.py).
 
     LeRobot's loader imports whatever dotted path a step's "class" names and calls it with the file's
-    arguments: a shared checkpoint could run any code. Registered steps (LeRobot's, ours, installed
-    plugins') are code the user installed, so only those load unless the user opts in.
+    arguments, and some registered steps load further code their arguments name: only steps reviewed as
+    safe, with safe arguments, load unless the user opts in. State files must lie in the folder either way.
     """
-    if trust_remote_code:
-        return
     from lerobot.processor.pipeline import ProcessorStepRegistry
 
     register_plugins()
-    registered = {
-        name: f"{cls.__module__}.{cls.__name__}"
+    by_class = {
+        f"{cls.__module__}.{cls.__name__}": name
         for name, cls in ((name, ProcessorStepRegistry.get(name)) for name in ProcessorStepRegistry.list())
     }
-    for file, step in processor_steps(path):
-        if "registry_name" in step:
-            if step["registry_name"] in registered:
-                continue
-            named = f"registry name {step['registry_name']!r}"
-        elif step.get("class") in registered.values():
+    for file, index, step in processor_steps(path):
+        check_state_file(file, index, step)
+        if trust_remote_code:
             continue
-        else:
-            named = f"class {step.get('class')!r}"
-        raise PermissionError(
-            f"Processor file {file} lists a step by {named}, which is not a registered LeRobot processor step: "
-            "loading it would import and run code the checkpoint names. Install the plugin that registers it, "
-            "or pass --policy.trust_remote_code=true if you trust this checkpoint's author"
-        )
+        name = step.get("registry_name") if "registry_name" in step else by_class.get(step.get("class"))
+        if not isinstance(name, str) or name not in ProcessorStepRegistry.list():
+            named = (
+                f"registry name {step['registry_name']!r}"
+                if "registry_name" in step
+                else f"class {step.get('class')!r}"
+            )
+            raise PermissionError(
+                f"Processor file {file}, step {index} names {named}, which is not a registered LeRobot processor "
+                f"step: loading it would import and run code the checkpoint names. Install the plugin that "
+                f"registers it, or {OPT_IN}"
+            )
+        check_step(file, index, step, name)
 
 
 def check_weights(path: str) -> None:
@@ -153,7 +155,11 @@ def checkpoint_hash(path: str) -> str:
         if checkpoint_file(path, name) is not None:
             names.append(name)
     names += sorted(
-        {step["state_file"] for _, step in processor_steps(path) if isinstance(step.get("state_file"), str)}
+        {
+            step["state_file"]
+            for _, _, step in processor_steps(path)
+            if isinstance(step.get("state_file"), str)
+        }
     )
     digest = hashlib.sha256()
     for name in names:

@@ -156,7 +156,7 @@ def cue_step(loaded: LoadedPolicy) -> dict | None:
     """The config of the checkpoint's enabled `condground_rgb_cue` step, or None."""
     if loaded.is_expert:
         return None
-    for _, step in processor_steps(loaded.path):
+    for _, _, step in processor_steps(loaded.path):
         config = step.get("config") or {}
         if step.get("registry_name") == CUE_STEP and config.get("enabled", True):
             return config

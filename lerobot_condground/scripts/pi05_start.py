@@ -58,8 +58,11 @@ def parse(args: list[str]) -> Config:
 def main(cfg: Config) -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
+    from lerobot_condground.core.trust import check_dataset_paths
     from lerobot_condground.policies.pi05_grounded.starting import write_starting_checkpoint
 
+    if cfg.dataset.root:
+        check_dataset_paths(Path(cfg.dataset.root))
     meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root)
     config = write_starting_checkpoint(cfg.source, cfg.policy_overrides, meta, cfg.output_dir)
     root = f" --dataset.root={cfg.dataset.root}" if cfg.dataset.root else ""

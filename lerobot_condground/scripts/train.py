@@ -27,6 +27,13 @@ def parse(args: list[str]) -> tuple[float, list[str]]:
         raise ValueError(
             f"--steps={steps[-1]} is not allowed; allowed: a whole number of training steps >= 1"
         )
+    roots = [a.removeprefix("--dataset.root=") for a in args if a.startswith("--dataset.root=")]
+    if roots and roots[-1]:
+        from pathlib import Path
+
+        from lerobot_condground.core.trust import check_dataset_paths
+
+        check_dataset_paths(Path(roots[-1]))  # lerobot-train reads (and resumed, writes) by its templates
     return max_gb, [a for a in args if not a.startswith(FLAG)]
 
 

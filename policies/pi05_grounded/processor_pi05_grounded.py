@@ -76,7 +76,8 @@ def tokenizer_step(config: PI05GroundedConfig) -> TokenizerProcessorStep:
     except (OSError, ValueError) as e:
         raise ValueError(
             f"--policy.tokenizer_name={config.tokenizer_name!r} cannot be loaded here ({type(e).__name__}). "
-            "Without network access give a local directory holding the tokenizer's files (tokenizer.json, "
-            "tokenizer_config.json; `AutoTokenizer.from_pretrained(name).save_pretrained(DIR)` where the hub "
-            "is reachable, or copy the hub cache)"
+            "Without network access keep the hub id and copy the hub cache from where the hub is reachable "
+            "(`hf download NAME`, then HF_HUB_CACHE): a checkpoint naming a tokenizer directory outside its "
+            "folder is refused by condground's commands. A local directory holding the tokenizer's files "
+            "(`AutoTokenizer.from_pretrained(name).save_pretrained(DIR)`) works with the stock scripts"
         ) from e

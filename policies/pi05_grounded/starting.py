@@ -20,6 +20,8 @@ import draccus
 import torch
 from safetensors import safe_open
 
+from lerobot_condground.core.trust import check_name
+
 from .configuration_pi05_grounded import PI05GroundedConfig
 from .modeling_pi05_grounded import WEIGHTS, PI05GroundedPolicy, weights_file
 from .processor_pi05_grounded import make_pi05_grounded_pre_post_processors
@@ -60,6 +62,9 @@ def source_config(source: str, overrides: list[str]) -> PI05GroundedConfig:
     # PreTrainedConfig picks a device available here; the checkpoint keeps the source's (or the flag's).
     if not any(arg.startswith("--device=") for arg in overrides):
         config.device = raw.get("device")
+    if "tokenizer_name" in raw and not any(arg.startswith("--tokenizer_name=") for arg in overrides):
+        # The source names what the new checkpoint's tokenizer step will load: a hub id or a path in its folder.
+        check_name(config_file.parent, raw["tokenizer_name"], f"{config_file}, field 'tokenizer_name',")
     return config
 
 

@@ -49,7 +49,7 @@ def test_a_checkpoint_naming_arbitrary_code_is_refused_before_anything_runs(tmp_
         proc.stderr.strip()
         .splitlines()[-1]
         .startswith(
-            f"condground sweep: Processor file {evil / PREPROCESSOR} lists a step by class 'subprocess.Popen'"
+            f"condground sweep: Processor file {evil / PREPROCESSOR}, step 0 names class 'subprocess.Popen'"
         )
     )
     assert "--policy.trust_remote_code=true" in proc.stderr and "Traceback" not in proc.stderr

@@ -6,7 +6,9 @@ with and without gradient checkpointing, strict weight loading, the full size on
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 
 import draccus
 import pandas as pd
@@ -59,6 +61,16 @@ def make_config(tokenizer, cls=PI05GroundedConfig, labels=LABELS, **kw) -> PI05C
     cfg.input_features |= {key: PolicyFeature(FeatureType.STATE, (1,)) for key in labels}
     cfg.output_features = {"action": PolicyFeature(FeatureType.ACTION, (7,))}
     return cfg
+
+
+def cache_repo(cache: Path, repo_id: str, files: Path) -> Path:
+    """`files` as the snapshot of hub repo `repo_id` in hub cache `cache`; returns the snapshot folder."""
+    repo = cache / f"models--{repo_id.replace('/', '--')}"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text("0" * 40)
+    snapshot = repo / "snapshots" / ("0" * 40)
+    shutil.copytree(files, snapshot)
+    return snapshot
 
 
 def make_policy(cfg, cls=PI05GroundedPolicy, seed=0):
@@ -336,19 +348,41 @@ def test_full_size_has_stock_pi05_names_and_shapes_on_the_meta_device():
     assert n_params == sum(p.numel() for p in stock.parameters()) > 4e9
 
 
-def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_path, monkeypatch):
-    from pathlib import Path
+def test_pi05_start_takes_no_tokenizer_path_from_outside_its_source(tokenizer, tmp_path):
+    """A source checkpoint's config names what the new tokenizer step loads: a hub id or a path in its folder."""
+    from lerobot_condground.policies.pi05_grounded.starting import source_config
 
+    source = tmp_path / "source"
+    source.mkdir()
+    make_config(tokenizer)._save_pretrained(source)
+    with pytest.raises(
+        PermissionError, match=rf"{source / 'config.json'}, field 'tokenizer_name', is '{tokenizer}'"
+    ):
+        source_config(str(source), [])
+    assert source_config(str(source), [f"--tokenizer_name={tokenizer}"]).tokenizer_name == str(tokenizer)
+    shutil.copytree(tokenizer, source / "tokenizer")
+    config = json.loads((source / "config.json").read_text())
+    (source / "config.json").write_text(json.dumps({**config, "tokenizer_name": str(source / "tokenizer")}))
+    assert source_config(str(source), []).tokenizer_name == str(source / "tokenizer")
+
+
+def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_path, monkeypatch):
     tests = Path(__file__).parents[1]
     monkeypatch.setenv("PYTHONPATH", f"{tests / 'pi05_site'}:{tests}")
     monkeypatch.setenv("CONDGROUND_TINY_PI05", "1")
     source = tmp_path / "pi05_source"
     make_policy(make_config(tokenizer, cls=PI05Config, labels=()), cls=PI05Policy).save_pretrained(source)
+    # Offline, the tokenizer and the weights come from the hub cache by hub id (the layout `hf download`
+    # leaves): a checkpoint naming a tokenizer directory outside its folder is refused by our commands.
+    cache = tmp_path / "hub"
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    tokenizer_repo = cache_repo(cache, "local/tokenizer", tokenizer)
+    (tokenizer_repo / "config.json").write_text('{"model_type": "gemma"}')  # as in google/paligemma-3b-pt-224
 
     start = tmp_path / "start"
     flags = [
         f"--policy.path={source}", "--dataset.repo_id=local/routing", f"--dataset.root={routing_dataset}",
-        f"--policy.tokenizer_name={tokenizer}", "--policy.grounding_layers=[0,1]",
+        "--policy.tokenizer_name=local/tokenizer", "--policy.grounding_layers=[0,1]",
     ]  # fmt: skip
     out = run_cli("condground", "pi05-start", *flags, f"--output_dir={start}")
     assert "Fine-tune with:" in out.stdout
@@ -360,16 +394,8 @@ def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_pat
     steps = [s["registry_name"] for s in read_json(start / "policy_preprocessor.json")["steps"]]
     assert steps[1:3] == ["condground_decode_labels", "condground_instruction"]
 
-    # A hub id resolves offline from the local cache (the layout `hf download` leaves), as pi05_base would.
-    cache = tmp_path / "hub"
-    repo = cache / "models--local--pi05_tiny"
-    (repo / "refs").mkdir(parents=True)
-    (repo / "refs" / "main").write_text("0" * 40)
-    snapshot = repo / "snapshots" / ("0" * 40)
-    snapshot.mkdir(parents=True)
-    for name in ("config.json", "model.safetensors"):
-        (snapshot / name).write_bytes((source / name).read_bytes())
-    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    # A hub id resolves offline from the local cache, as pi05_base would.
+    snapshot = cache_repo(cache, "local/pi05_tiny", source)
     from_hub = tmp_path / "start_from_hub"
     run_cli(
         "condground", "pi05-start", "--policy.path=local/pi05_tiny", *flags[1:], f"--output_dir={from_hub}"
@@ -377,7 +403,6 @@ def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_pat
     assert (from_hub / "model.safetensors").resolve() == (snapshot / "model.safetensors").resolve()
     missing = run_cli("condground", "pi05-start", "--policy.path=local/absent", *flags[1:], f"--output_dir={tmp_path / 'y'}", check=False)  # fmt: skip
     assert missing.returncode == 2 and "cannot get its config.json" in missing.stderr
-    monkeypatch.delenv("HF_HUB_CACHE")
 
     again = run_cli("condground", "pi05-start", *flags, f"--output_dir={start}", check=False)
     assert again.returncode == 2 and "exists and is not empty" in again.stderr
