@@ -99,3 +99,18 @@ def read_table(path: Path) -> pd.DataFrame:
 def read_metadata(path: Path) -> dict:
     metadata = pq.read_schema(path).metadata or {}
     return json.loads(metadata[METADATA_KEY]) if METADATA_KEY in metadata else {}
+
+
+def refuse_rows_outside(path: Path, frame, columns: list[str], belongs, manifest: str) -> None:
+    """Raises naming the first row of `frame` (read from `path`) whose `columns` values `belongs` rejects:
+    a row the run's manifest never asked for is an error, never counted, never dropped."""
+    if not len(frame):
+        return
+    ok = [bool(belongs(*values)) for values in frame[columns].itertuples(index=False, name=None)]
+    if not all(ok):
+        i = ok.index(False)
+        row = ", ".join(f"{c}={frame[c].iloc[i]!r}" for c in columns)
+        raise ValueError(
+            f"{path}: row {i} ({row}) is not part of the run {manifest} describes ({ok.count(False)} such rows); "
+            "rows outside the manifest are never counted: rerun into a new --output_dir"
+        )

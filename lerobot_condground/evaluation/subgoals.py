@@ -43,7 +43,7 @@ from lerobot_condground.evaluation.checkpoints import (
     processor_steps,
     resolve_device,
 )
-from lerobot_condground.evaluation.results import TABLE_COLUMNS, read_table, write_table
+from lerobot_condground.evaluation.results import TABLE_COLUMNS, read_table, refuse_rows_outside, write_table
 from lerobot_condground.evaluation.rollout import EnvSpec, run_episodes
 from lerobot_condground.evaluation.statistics import SUBGOAL_POOLS, SUBGOAL_TITLES, subgoal_rates
 from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT, layout_seed
@@ -241,19 +241,26 @@ def make_run(cfg: SubgoalsConfig, loaded: LoadedPolicy, subgoals: list[str], spe
     }
 
 
-def check_same_run(root: Path, mode: str, condition: str, run: dict) -> dict:
+def check_same_run(root: Path, mode: str, condition: str, run: dict, rows: pd.DataFrame) -> dict:
     """The directory's manifest with this run in it; refuses another mode, or other settings for a
-    condition already run there."""
+    condition already run there. What no trial was scored under pins nothing: a run refused or failed
+    before its first trial never blocks the corrected rerun."""
     path = root / MANIFEST
+    fresh = {"kind": "subgoals", "task": ROUTING_TASK, "mode": mode, "runs": {}}
     if not path.exists():
         if (root / RESULTS).exists():
             raise ValueError(
                 f"{root} holds {RESULTS} but no {MANIFEST}: it is not a condground subgoals directory"
             )
-        return {"kind": "subgoals", "task": ROUTING_TASK, "mode": mode, "runs": {}}
+        return fresh
     manifest = read_json_object(path, "Subgoals manifest")
     if manifest.get("kind") != "subgoals" or not isinstance(manifest.get("runs"), dict):
         raise ValueError(f"{path} is not a condground subgoals manifest; choose another --output_dir")
+    check_rows_against_runs(root / RESULTS, rows, manifest["runs"])
+    if not len(rows):
+        return fresh
+    if not (rows["condition"] == condition).any():
+        manifest["runs"].pop(condition, None)
     if manifest.get("mode") != mode:
         raise ValueError(
             f"{root} holds trials run on {manifest.get('mode')!r}, this run is on {mode!r}; simulated and real "
@@ -269,6 +276,21 @@ def check_same_run(root: Path, mode: str, condition: str, run: dict) -> dict:
                 "Rerun with the same flags to resume it, or choose a new --output_dir."
             )
     return manifest
+
+
+def check_rows_against_runs(path: Path, rows: pd.DataFrame, runs: dict) -> None:
+    """Every trial row belongs to a run of the manifest: its condition, one of its subgoals, a trial below
+    its trial count."""
+
+    def belongs(condition, subgoal, episode) -> bool:
+        run = runs.get(condition)
+        return (
+            isinstance(run, dict)
+            and subgoal in run.get("subgoals", [])
+            and 0 <= episode < run.get("trials", 0)
+        )
+
+    refuse_rows_outside(path, rows, ["condition", "subgoal", "episode"], belongs, MANIFEST)
 
 
 def read_rows(root: Path) -> pd.DataFrame:
@@ -402,11 +424,11 @@ def run_subgoals(cfg: SubgoalsConfig) -> Path:
     root = Path(cfg.output_dir)
     mode = "sim" if cfg.robot is None else cfg.robot.type
     run = make_run(cfg, loaded, subgoals, spec)
-    manifest = check_same_run(root, mode, cfg.condition, run)
+    rows = read_rows(root)
+    manifest = check_same_run(root, mode, cfg.condition, run, rows)
     manifest["runs"][cfg.condition] = {**run, "command": command_line("subgoals", cfg)}
     manifest["versions"] = versions()
 
-    rows = read_rows(root)
     mine = rows[rows["condition"] == cfg.condition]
     done = set(zip(mine["subgoal"], mine["episode"].astype(int)))
     plan = [

@@ -157,15 +157,22 @@ def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[Loa
     }
 
 
-def check_same_sweep(root: Path, manifest: dict) -> None:
-    """A rerun must be the same sweep: same grid, same checkpoints with the same weights."""
+def check_same_sweep(root: Path, manifest: dict) -> bool:
+    """A rerun must be the same sweep: same grid, same checkpoints with the same weights. True when the
+    manifest is to be written: none yet, or one of a run that finished no episode (it pinned nothing, and a
+    run refused or failed before its first result must not block the corrected rerun)."""
     path = root / MANIFEST
+    results = (root / RESULTS).exists() or (
+        (root / PARTS).exists() and any((root / PARTS).rglob("*.parquet"))
+    )
     if not path.exists():
-        if (root / RESULTS).exists() or (root / PARTS).exists():
+        if results:
             raise ValueError(
                 f"{root} holds results but no {MANIFEST}: it is not a condground sweep directory"
             )
-        return
+        return True
+    if not results:
+        return True
     previous = read_json_object(path, "Sweep manifest")
     diffs = [
         f"{k}: {previous['grid'].get(k)!r} -> {v!r}"
@@ -181,6 +188,7 @@ def check_same_sweep(root: Path, manifest: dict) -> None:
             f"{root} holds a sweep of another grid; differences: {'; '.join(diffs)}. "
             "Rerun with the same flags to resume it, or choose a new --output_dir."
         )
+    return False
 
 
 def plan_units(cfg: SweepConfig, conditions: list[str], n_checkpoints: int) -> list[Unit]:
@@ -212,9 +220,9 @@ def run_sweep(cfg: SweepConfig) -> Path:
         check_env_fits(loaded, EnvSpec.for_checkpoint(cfg.env, loaded, "clean").lerobot_config())
     root = Path(cfg.output_dir)
     manifest = make_manifest(cfg, conditions, checkpoints)
-    check_same_sweep(root, manifest)
+    write = check_same_sweep(root, manifest)
     root.mkdir(parents=True, exist_ok=True)
-    if not (root / MANIFEST).exists():
+    if write:
         (root / MANIFEST).write_text(json.dumps(manifest, indent=2))
 
     units = plan_units(cfg, conditions, len(checkpoints))

@@ -135,6 +135,50 @@ def check_same_settings(cfg: ReproduceConfig) -> None:
         )
 
 
+def check_train_flags(cfg: ReproduceConfig, stages: list[Stage]) -> None:
+    """A training stage's whole command line parses against lerobot-train's own config, checked before the
+    manifest pins --train.extra_flags: a flag lerobot-train refuses would otherwise fail the first training
+    stage and pin settings the corrected rerun is then refused for."""
+    import draccus
+    from lerobot.configs.train import TrainPipelineConfig
+
+    from lerobot_condground.evaluation.checkpoints import register_plugins
+
+    train = next((s for s in stages if s.kind == "train"), None)
+    if train is None:
+        return
+    args = command(cfg, train, 1)
+    if "--resume=true" in args:
+        return  # it parsed when the stage started
+    register_plugins()
+    try:
+        draccus.parse(TrainPipelineConfig, args=args[1:], exit_on_error=False)
+    except (draccus.utils.DraccusException, ValueError) as err:
+        message = " ".join(str(err).split())
+        raise ValueError(
+            f"the training stages' lerobot-train flags do not parse ({message}); check --train.extra_flags="
+            f"{cfg.train.extra_flags!r} and the preset's policy flags"
+        ) from None
+
+
+def _product(cfg: ReproduceConfig, stage: Stage) -> Path:
+    """The file a stage exists to write: a stage that exits 0 without it is not done."""
+    here = Path(cfg.output_dir) / stage.name
+    if stage.kind == "train":
+        return checkpoint_dir(cfg, stage.task, stage.variant, stage.seed) / "model.safetensors"
+    return (
+        here
+        / {
+            "record": "meta/info.json",
+            "sweep": "results.parquet",
+            "sweep_counterbalanced": "results.parquet",
+            "diagnose": "diagnostics.json",
+            "probe": "probe.json",
+            "report": "report.html",
+        }[stage.kind]
+    )
+
+
 def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:
     diffs = []
     for key in sorted(set(old) | set(new)):
@@ -235,6 +279,7 @@ def run(cfg: ReproduceConfig) -> Path:
     cores = usable_cores()
     stages = plan(cfg, cores)
     check_same_settings(cfg)
+    check_train_flags(cfg, stages)
     done = {s.name for s in stages if _is_done(cfg, s)}
     print(describe(cfg, stages, done, cores), flush=True)
     if cfg.dry_run:
@@ -272,11 +317,13 @@ def run(cfg: ReproduceConfig) -> Path:
                 if proc.poll() is None:
                     continue
                 del running[name]
-                if proc.returncode != 0:
+                product = _product(cfg, stage)
+                if proc.returncode != 0 or not product.is_file():
                     os.close(lock)
                     tail = _log(cfg, stage).read_text(errors="replace").splitlines()[-40:]
+                    why = f"exit {proc.returncode}" if proc.returncode else f"exit 0, but no {product}"
                     raise StageFailedError(
-                        f"stage {name} failed (exit {proc.returncode}); the end of its log {_log(cfg, stage)}:\n"
+                        f"stage {name} failed ({why}); the end of its log {_log(cfg, stage)}:\n"
                         + "\n".join(tail)
                         + "\nThe stages done are kept: the same command retries from this one."
                     )

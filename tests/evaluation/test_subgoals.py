@@ -19,7 +19,8 @@ from scipy.stats import binomtest
 from helpers import make_checkpoint, run_cli
 from lerobot_condground.cli import main
 from lerobot_condground.core.routing import DESTINATION, SUBGOALS
-from lerobot_condground.evaluation.results import read_table
+from lerobot_condground.evaluation.results import read_metadata, read_table, write_table
+from lerobot_condground.evaluation.subgoals import check_same_run
 from ur_fake import free_loopback_host, start_fake_controller
 
 HEIGHT, WIDTH = 64, 80
@@ -116,8 +117,24 @@ def test_three_conditions_in_one_directory_give_paired_rows_and_a_wilson_table(t
     )
     refused = subgoals_cli(*act, "--condition=no_cue", "--seed=7", f"--output_dir={out}", check=False)
     assert refused.returncode == 2 and "differences: seed: 1000000 -> 7" in refused.stderr
-
+    # Settings no trial was scored under pin nothing (a run that failed before its first trial).
+    manifest = json.loads((out / "subgoals.json").read_text())
+    other = {**manifest["runs"]["no_cue"], "seed": 7}
+    kept = check_same_run(out, "sim", "no_cue", other, rows[rows.condition != "no_cue"])
+    assert "no_cue" not in kept["runs"] and set(kept["runs"]) == {"cue", "explicit"}
+    # A row the manifest never asked for (a subgoal the cue run did not run) is an error, never counted.
+    hostile = rows.copy()
+    hostile.loc[hostile.index[hostile.condition == "cue"][0], "subgoal"] = "pick"
+    original = (out / "results.parquet").read_bytes()
+    write_table(hostile, out / "results.parquet", metadata=read_metadata(out / "results.parquet"))
+    outside = subgoals_cli(*act, "--condition=cue", f"--output_dir={out}", check=False)
+    assert outside.returncode == 2 and f"{out / 'results.parquet'}: row " in outside.stderr
+    assert "(condition='cue', subgoal='pick', episode=" in outside.stderr
     from lerobot_condground.diagnosis.report import ReportConfig, build_report
+
+    with pytest.raises(ValueError, match="subgoal='pick'.*is not part of the run subgoals.json describes"):
+        build_report(ReportConfig(input_dir=[str(out)], output=str(tmp_path / "hostile.html")))
+    (out / "results.parquet").write_bytes(original)
 
     _, markdown = build_report(ReportConfig(input_dir=[str(out)], output=str(tmp_path / "report.html")))
     text = markdown.read_text()

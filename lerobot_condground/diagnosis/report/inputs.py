@@ -15,7 +15,8 @@ import pandas as pd
 
 from lerobot_condground.core.conditions import ROUTING_TASK
 from lerobot_condground.core.files import read_json_object
-from lerobot_condground.evaluation.results import read_metadata, read_table
+from lerobot_condground.evaluation.results import read_metadata, read_table, refuse_rows_outside
+from lerobot_condground.evaluation.subgoals import check_rows_against_runs
 
 KIND_FILES = {
     "sweep.json": "sweep",
@@ -76,6 +77,10 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
         )
     if problems:
         raise ValueError(f"{folder}: results.parquet does not match sweep.json: {'; '.join(problems)}")
+    listed = {(c.get("label"), c.get("hash")) for c in manifest.get("checkpoints", [])}
+    refuse_rows_outside(
+        path, frame, ["policy_label", "checkpoint_hash"], lambda label, h: (label, h) in listed, "sweep.json"
+    )
     _refuse_repeats(folder, frame, EPISODE_KEY, "episode")
     if grid.get("counterbalanced"):
         # Another scene distribution than the plain condition of the same name: its own rows in every table.
@@ -103,6 +108,7 @@ def _load_subgoals(folder: Path, manifest: dict) -> pd.DataFrame:
         problems.append(f"conditions {sorted(set(frame['condition']))} but subgoals.json runs {sorted(runs)}")
     if problems:
         raise ValueError(f"{folder}: results.parquet does not match subgoals.json: {'; '.join(problems)}")
+    check_rows_against_runs(path, frame, runs)
     _refuse_repeats(folder, frame, TRIAL_KEY, "trial")
     return frame.assign(source=str(folder))
 
