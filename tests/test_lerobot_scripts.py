@@ -94,6 +94,16 @@ def test_bad_env_flags_are_the_last_line_under_lerobot_eval(stock_act_checkpoint
     assert "Traceback" not in out.stderr
 
 
+def test_bad_robot_flags_are_the_last_line_under_lerobot_record(tmp_path):
+    out = run_cli(
+        "lerobot-record", "--robot.type=ur3e", "--robot.backend=rtde", "--dataset.repo_id=local/x",
+        f"--dataset.root={tmp_path / 'x'}", "--dataset.single_task=t", check=False,
+    )  # fmt: skip
+    last = out.stderr.strip().splitlines()[-1]
+    assert out.returncode != 0 and last.startswith("error: Invalid ur3e robot config: host is required"), last
+    assert "Traceback" not in out.stderr and not (tmp_path / "x").exists()
+
+
 @pytest.fixture(scope="module")
 def act_modified_checkpoint(recorded_dataset, tmp_path_factory):
     """The full act_modified variant trained 3 steps by the stock lerobot-train, with its periodic env eval,

@@ -22,8 +22,8 @@ SEED_LIMIT = 2**63  # seeds are stored in int64 columns (results, provenance); n
 
 
 class ConfigError(draccus.utils.DecodingError):
-    """A bad value found by a config's `__post_init__`, for configs the stock scripts parse (`--env.*`; the
-    robot's config still raises ValueError). draccus wraps a ValueError raised there into its generic "Couldn't instantiate class" at
+    """A bad value found by a config's `__post_init__`, for configs the stock scripts parse (`--env.*`,
+    `--robot.*`). draccus wraps a ValueError raised there into its generic "Couldn't instantiate class" at
     the end of a long traceback; this one it passes on, and LeRobot's scripts print it as one line,
     `error: <message>`. Not a ValueError for that reason; `condground` reports it like one."""
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from lerobot.cameras import CameraConfig
 from lerobot.robots.config import RobotConfig
 
+from lerobot_condground.core.configs import ConfigError
 from lerobot_condground.labelling.segmenters import DEFAULT_SAM2_MODEL, SEGMENTERS
 
 BACKENDS = ("rtde", "sim")
@@ -179,7 +180,7 @@ class UR3eConfig(RobotConfig):
                     "prompts.object and prompts.receptacle (x,y or x0,y0,x1,y1) are needed unless prompts.interactive=true"
                 )
         if problems:
-            raise ValueError("Invalid ur3e robot config: " + "; ".join(problems))
+            raise ConfigError("Invalid ur3e robot config: " + "; ".join(problems))
         if self.backend == "sim":
             from lerobot_condground.core.conditions import ConditionSpec, check_task
 

@@ -48,6 +48,21 @@ def probe(host: str, port: int, timeout: float) -> None:
         ) from exc
 
 
+@contextlib.contextmanager
+def answering(host: str, port: int, what: str):
+    """ur_rtde's own errors for a controller that accepts and then stays silent say only `Operation canceled`."""
+    try:
+        yield
+    except ConnectionError:
+        raise
+    except Exception as exc:
+        raise ConnectionError(
+            f"UR controller {host}:{port} ({what}) accepted the connection but did not answer ({type(exc).__name__}: "
+            f"{exc}). Check that the controller has finished booting (the pendant shows the robot's screen), that "
+            "no other program holds this interface, and that --robot.host is the controller, not another device."
+        ) from exc
+
+
 class URBackend:
     """ArmBackend over ur_rtde, inside the worker process."""
 
@@ -65,9 +80,10 @@ class URBackend:
         import rtde_receive
 
         cfg, host = self.cfg, self.cfg["host"]
-        self.dashboard = dashboard_client.DashboardClient(host)
-        self.dashboard.connect()
-        model = self.dashboard.getRobotModel().strip()
+        with answering(host, DASHBOARD_PORT, "dashboard server"):
+            self.dashboard = dashboard_client.DashboardClient(host)
+            self.dashboard.connect()
+            model = self.dashboard.getRobotModel().strip()
         if model != cfg["expected_model"]:
             raise ConnectionError(
                 f"The dashboard at {host} reports robot model {model!r}; --robot.type=ur3e drives a UR3e "
@@ -78,12 +94,15 @@ class URBackend:
                 f"The UR at {host} is in Local Control. Switch the teach pendant to Remote Control "
                 "(Settings > System > Remote Control, then the pendant's top-right toggle)."
             )
-        self.receive = rtde_receive.RTDEReceiveInterface(host, cfg["servo_hz"])
-        check_safety_mode(self.receive.getSafetyMode())
+        with answering(host, RTDE_PORT, "RTDE interface"):
+            self.receive = rtde_receive.RTDEReceiveInterface(host, cfg["servo_hz"])
+            safety_mode = self.receive.getSafetyMode()
+        check_safety_mode(safety_mode)
         if not cfg["dry_run"]:
             import rtde_control
 
-            self.control = rtde_control.RTDEControlInterface(host)
+            with answering(host, RTDE_PORT, "RTDE control interface"):
+                self.control = rtde_control.RTDEControlInterface(host)
         if cfg["gripper"] == "robotiq":
             from .grippers import RobotiqSocketGripper
 
@@ -293,8 +312,11 @@ class RTDEArm:
             if not self.process.is_alive() or time.monotonic() > deadline:
                 self._kill()
                 raise ConnectionError(
-                    f"The UR at {cfg.host} did not finish connecting within {cfg.connect_timeout_s} s "
-                    "(ur_rtde has no timeout of its own; --robot.connect_timeout_s sets this one)"
+                    f"UR controller {cfg.host} (dashboard server {cfg.host}:{DASHBOARD_PORT}, RTDE "
+                    f"{cfg.host}:{RTDE_PORT}) accepted the connection but did not finish connecting within "
+                    f"{cfg.connect_timeout_s} s. Check that the controller has finished booting, that no other program "
+                    "holds these interfaces, and that --robot.host is the controller (--robot.connect_timeout_s sets "
+                    "the wait; ur_rtde has none of its own)"
                 )
         try:
             kind, message = self.conn.recv()

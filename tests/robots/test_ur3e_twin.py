@@ -18,6 +18,7 @@ from lerobot.utils.feature_utils import hw_to_dataset_features
 from helpers import make_checkpoint, run_cli
 from lerobot_condground.cameras import ur3e_twin
 from lerobot_condground.cameras.config_ur3e_twin import UR3eTwinCameraConfig
+from lerobot_condground.core.configs import ConfigError
 from lerobot_condground.core.labels import OBS_PHASE, OBS_PROMPT_OBJECT, OBS_SEGMENTATION, decode_png
 from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 from lerobot_condground.envs.robot import HOME_QPOS, MOTOR_NAMES
@@ -332,7 +333,7 @@ def test_missing_camera_is_one_clear_error_and_the_arm_is_released():
 def test_config_errors_name_the_bad_value(kwargs, words):
     if "prompts" in kwargs:
         kwargs["prompts"] = UR3ePromptsConfig(**kwargs["prompts"])
-    with pytest.raises(ValueError, match=words.replace("(", r"\(").replace("[", r"\[")):
+    with pytest.raises(ConfigError, match=words.replace("(", r"\(").replace("[", r"\[")):
         UR3eConfig(**kwargs)
 
 
