@@ -76,6 +76,10 @@ COMMANDS = {
         "attention",
         "Per-step cross-attention of one head overlaid on the camera, as a video with stills.",
     ),
+    "view": (
+        "view",
+        "Log one episode (a dataset's, with its segmentation, phase and prompts, or an attention run) to rerun.",
+    ),
     "report": (
         "report",
         "Turn sweep, diagnose, probe and attention outputs into one HTML + Markdown report.",
