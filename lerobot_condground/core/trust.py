@@ -76,6 +76,24 @@ REFUSED_STEPS = {
     ),
 }
 
+# Policy types whose construction from a checkpoint's config.json loads nothing the config names beyond
+# torchvision's own weights (reviewed in LeRobot 0.6.1 and this plugin). Others load models, tokenizers or
+# remote code by a name in the config as they are built (pi0_fast's action tokenizer, gaussian_actor's vision
+# encoder and wall_x's tokenizer with trust_remote_code=True; groot's base model; smolvla's VLM).
+REVIEWED_POLICY_TYPES = frozenset(
+    {"act", "act_modified", "diffusion", "vqbet", "tdmpc", "pi0", "pi05", "pi05_grounded"}
+)
+
+
+def check_policy_type(config_file: Path, policy_type: str) -> None:
+    if policy_type not in REVIEWED_POLICY_TYPES:
+        raise PermissionError(
+            f"Policy config {config_file} names policy type {policy_type!r}, which is not reviewed as safe to build "
+            f"from an untrusted checkpoint (building it may load code or models its config names; reviewed: "
+            f"{', '.join(sorted(REVIEWED_POLICY_TYPES))}); {OPT_IN}"
+        )
+
+
 HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
 OPT_IN = "pass --policy.trust_remote_code=true if you trust this checkpoint's author"
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from lerobot_condground.core.files import read_json_object
-from lerobot_condground.core.trust import OPT_IN, check_state_file, check_step
+from lerobot_condground.core.trust import OPT_IN, check_policy_type, check_state_file, check_step
 
 EXPERT = "expert"
 CAMERA_PREFIX = "observation.images."
@@ -215,6 +215,8 @@ def describe_checkpoint(
             f"Policy config {config_file} names policy type {policy_type!r}, which no installed package "
             f"registers; known: {', '.join(known)}"
         )
+    if not trust_remote_code:
+        check_policy_type(config_file, policy_type)
     check_processor_steps(path, trust_remote_code)
     check_weights(path)
     variant = config.get("variant", "") if policy_type == "act_modified" else ""

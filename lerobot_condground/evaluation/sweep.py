@@ -179,10 +179,10 @@ def check_same_sweep(root: Path, manifest: dict) -> bool:
         for k, v in manifest["grid"].items()
         if previous["grid"].get(k) != v
     ]
-    old = [(c["path"], c["hash"]) for c in previous["checkpoints"]]
-    new = [(c["path"], c["hash"]) for c in manifest["checkpoints"]]
+    old = [(c["path"], c["hash"], c.get("label")) for c in previous["checkpoints"]]
+    new = [(c["path"], c["hash"], c.get("label")) for c in manifest["checkpoints"]]
     if old != new:
-        diffs.append(f"checkpoints (path, hash): {old} -> {new}")
+        diffs.append(f"checkpoints (path, hash, label): {old} -> {new}")
     if diffs:
         raise ValueError(
             f"{root} holds a sweep of another grid; differences: {'; '.join(diffs)}. "

@@ -185,6 +185,9 @@ class ReproduceConfig:
         check_servo(self.env.servo, "--env.servo")
         self.variant_list()
         check_at_least(self.record, "record.", episodes=1, observation_height=1, observation_width=1)
+        # What each stage's own command would refuse, refused here: pinned in reproduce.json, a value the
+        # first stage fails on would block the corrected rerun.
+        self._check_stage_limits()
         check_at_least(self.train, "train.", seeds=1, steps=1, batch_size=1, save_freq=1, num_workers=0)
         check_at_least(self.eval, "eval.", seeds=1, n_episodes=1, batch_size=1, episode_length=1)
         check_at_least(self.diagnose, "diagnose.", pairs=1)
@@ -204,6 +207,24 @@ class ReproduceConfig:
                     + (f"; use {instead} instead" if instead else "")
                 )
         self.condition_lists()
+
+    def _check_stage_limits(self) -> None:
+        from lerobot_condground.datasets.record import MAX_EPISODES
+        from lerobot_condground.envs.arm_env import check_resolution
+        from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT
+
+        try:
+            check_resolution(self.record.observation_height, self.record.observation_width)
+        except ValueError as err:
+            raise ValueError(f"--record.observation_height/width: {err}") from None
+        for flag, value, limit in (
+            ("--record.episodes", self.record.episodes, MAX_EPISODES),
+            ("--eval.n_episodes", self.eval.n_episodes, EPISODES_PER_SEED_LIMIT),
+        ):
+            if value > limit:
+                raise ValueError(
+                    f"{flag}={value} is not allowed; allowed: 1 to {limit} (the stage's own limit)"
+                )
 
     def task_list(self) -> list[str]:
         return _split(self.tasks, "--tasks", TASKS)

@@ -154,7 +154,10 @@ def check_train_flags(cfg: ReproduceConfig, stages: list[Stage]) -> None:
     try:
         draccus.parse(TrainPipelineConfig, args=args[1:], exit_on_error=False)
     except (draccus.utils.DraccusException, ValueError) as err:
-        message = " ".join(str(err).split())
+        inner = err  # draccus wraps a config's own message in "Couldn't instantiate class ..."
+        while inner.__cause__ or inner.__context__:
+            inner = inner.__cause__ or inner.__context__
+        message = " ".join(str(inner).split())
         raise ValueError(
             f"the training stages' lerobot-train flags do not parse ({message}); check --train.extra_flags="
             f"{cfg.train.extra_flags!r} and the preset's policy flags"

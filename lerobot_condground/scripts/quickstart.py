@@ -26,7 +26,7 @@ from pathlib import Path
 from lerobot_condground.core.conditions import TASKS
 from lerobot_condground.core.configs import check_at_least
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
-from lerobot_condground.evaluation.checkpoints import check_processor_steps
+from lerobot_condground.evaluation.checkpoints import describe_checkpoint
 
 CONDITIONS = ("clean", "full_mixed")
 TRAIN_TASK = "PickPlaceFixedBin-v0"
@@ -212,7 +212,7 @@ def main(cfg: Config) -> list:
     reused = Path(cfg.output_dir) / "train" / "checkpoints" / "last" / "pretrained_model"
     if reused.exists():
         # Stock lerobot-eval loads it later and has no trust gate: a folder found on disk passes ours first.
-        check_processor_steps(str(reused), trust_remote_code=False)
+        describe_checkpoint(str(reused))  # its policy type and processor steps, as every command checks them
     roots = _record(cfg)
     checkpoint = _train(cfg, roots[TRAIN_TASK])
     rows = [

@@ -7,7 +7,9 @@ flag of its own, `--frame_cache_gb` (default 8): the memory decoded frames may t
 
 from __future__ import annotations
 
+import contextlib
 import sys
+from pathlib import Path
 
 FLAG = "--frame_cache_gb="
 DEFAULT_GB = 8.0
@@ -27,13 +29,6 @@ def parse(args: list[str]) -> tuple[float, list[str]]:
         raise ValueError(
             f"--steps={steps[-1]} is not allowed; allowed: a whole number of training steps >= 1"
         )
-    roots = [a.removeprefix("--dataset.root=") for a in args if a.startswith("--dataset.root=")]
-    if roots and roots[-1]:
-        from pathlib import Path
-
-        from lerobot_condground.core.trust import check_dataset_paths
-
-        check_dataset_paths(Path(roots[-1]))  # lerobot-train reads (and resumed, writes) by its templates
     return max_gb, [a for a in args if not a.startswith(FLAG)]
 
 
@@ -43,6 +38,27 @@ def main(cfg: tuple[float, list[str]]) -> None:
     from lerobot_condground.datasets.frame_cache import FrameCache
 
     max_gb, args = cfg
-    with FrameCache(max_gb):
+    with FrameCache(max_gb), _metadata_checked():
         sys.argv = ["lerobot-train", *args]
         lerobot_train.main()
+
+
+@contextlib.contextmanager
+def _metadata_checked():
+    """The dataset LeRobot opens (by --dataset.root in any spelling, a --config_path, or a hub download into
+    $HF_LEROBOT_HOME) keeps every path its metadata templates name inside its root, checked as it is read."""
+    from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+
+    from lerobot_condground.core.trust import check_dataset_paths
+
+    load = LeRobotDatasetMetadata._load_metadata
+
+    def checked(self, *args, **kwargs):
+        load(self, *args, **kwargs)
+        check_dataset_paths(Path(self.root))
+
+    LeRobotDatasetMetadata._load_metadata = checked
+    try:
+        yield
+    finally:
+        LeRobotDatasetMetadata._load_metadata = load

@@ -31,6 +31,7 @@ from lerobot_condground.core.labels import (
     OBS_SEGMENTATION,
     PROMPT_CAMERA_KEYS,
 )
+from lerobot_condground.core.trust import HUB_ID
 from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
 
 # Learning-rate schedules of the training preset, over `--steps`: constant is ACT's (no scheduler);
@@ -170,6 +171,11 @@ class ACTModifiedConfig(ACTConfig):
         if self.init_from_act and Path(self.init_from_act).exists():
             # Saved into config.json: relative, it would name another folder from wherever the run is resumed.
             self.init_from_act = str(Path(self.init_from_act).resolve())
+        elif self.init_from_act and not HUB_ID.fullmatch(self.init_from_act):
+            raise ValueError(
+                f"init_from_act={self.init_from_act!r} is neither an existing checkpoint directory nor a hub id "
+                "(namespace/name)"
+            )
         if self.scheduler_name not in SCHEDULERS:
             raise ValueError(
                 f"scheduler_name={self.scheduler_name!r} is not allowed; allowed: {', '.join(SCHEDULERS)}"

@@ -64,7 +64,11 @@ def test_every_command_refuses_templates_that_leave_the_root(
                        "--dataset.num_episodes=2", "--dataset.labels=false", "--progress=false"],
             "augment": ["augment", *data, f"--output.root={tmp_path / 'out' / name}"],
             "fit": ["fit", f"--policy.path={act_checkpoint}", *data, f"--output_dir={tmp_path / 'fit' / name}"],
-            "train": ["train", "--policy.type=act", *data, f"--output_dir={tmp_path / 'train' / name}"],
+            "train": ["train", "--policy.type=act", "--policy.push_to_hub=false", *data, f"--output_dir={tmp_path / 'train' / name}"],
+            # Whatever spelling names the root LeRobot opens (here draccus's "--flag value").
+            "train, root as two words": ["train", "--policy.type=act", "--policy.push_to_hub=false",
+                                         "--dataset.repo_id=local/test_plain", "--dataset.root", str(root),
+                                         f"--output_dir={tmp_path / 'train' / name}"],
             "prompts": ["prompts", *data, f"--output.root={tmp_path / 'prompts' / name}"],
         }  # fmt: skip
         for command, args in commands.items():

@@ -170,6 +170,10 @@ def test_bad_input_is_one_clear_error(tmp_path, tiny_checkpoints):
     run_sweep(sweep_config([ckpt], out, conditions="clean", length=3, workers=1))
     with pytest.raises(ValueError, match="another grid; differences: n_episodes: 2 -> 4"):
         run_sweep(sweep_config([ckpt], out, conditions="clean", episodes=4, length=3, workers=1))
+    relabelled = sweep_config([ckpt], out, conditions="clean", length=3, workers=1)
+    relabelled.policy.label = "mine"  # rows under two labels would make the report refuse the directory
+    with pytest.raises(ValueError, match=r"checkpoints \(path, hash, label\).*'mine'"):
+        run_sweep(relabelled)
     manifest = (out / MANIFEST).read_text()
     (out / MANIFEST).write_text(manifest[: len(manifest) // 2])  # a hand edit gone wrong
     with pytest.raises(ValueError, match=f"Sweep manifest {out / MANIFEST} is not valid JSON"):

@@ -215,3 +215,24 @@ def test_what_the_gate_prevents_shipped_code_runs_once_trusted(act_checkpoint, t
         *args, "--policy.trust_remote_code=true", f"--output_dir={tmp_path / 'trusted'}", check=False
     )
     assert marker.exists(), trusted.stderr[-2000:]
+
+
+def test_a_policy_type_that_loads_what_its_config_names_is_refused(act_checkpoint, tmp_path, capsys):
+    """pi0_fast builds its action tokenizer with trust_remote_code=True from a name in config.json."""
+    marker = tmp_path / "pwned"
+    ckpt = tmp_path / "pi0_fast"
+    shutil.copytree(act_checkpoint, ckpt)
+    shipped_code(ckpt / "fast", marker)
+    config = json.loads((ckpt / "config.json").read_text())
+    (ckpt / "config.json").write_text(
+        json.dumps({**config, "type": "pi0_fast", "action_tokenizer_name": str(ckpt / "fast")})
+    )
+    for command in ("sweep", "failures", "attention"):
+        assert main([command, f"--policy.path={ckpt}", f"--output_dir={tmp_path / command}"]) == 2
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert (
+            f"Policy config {ckpt / 'config.json'} names policy type 'pi0_fast', which is not reviewed"
+            in last
+        )
+        assert OPT_IN in last and not (tmp_path / command).exists()
+    assert not marker.exists()

@@ -79,6 +79,12 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
             "sets itself after the extra flags (it would be ignored)",
         ),
         ("--train.extra_flags=--steps=5", "use --train.steps instead"),
+        ("--record.observation_height=32", "--record.observation_height/width: Image height 32 cannot be"),
+        ("--eval.n_episodes=150000", "--eval.n_episodes=150000 is not allowed; allowed: 1 to 100000"),
+        (
+            "--train.extra_flags=--policy.init_from_act=typo_dir",
+            "do not parse (init_from_act='typo_dir' is neither an existing checkpoint directory nor a hub id",
+        ),
         (
             "--train.extra_flags=--policy.no_such_field=1",
             "lerobot-train flags do not parse (unrecognized arguments: --policy.no_such_field=1)",
