@@ -152,6 +152,8 @@ def conditional_placement(
     import pandas as pd
 
     from lerobot_condground.core.conditions import ConditionSpec
+    from lerobot_condground.core.files import read_json_object
+    from lerobot_condground.evaluation.results import refuse_rows_outside
 
     path = Path(sweep_dir) / "results.parquet"
     if not path.is_file():
@@ -162,6 +164,22 @@ def conditional_placement(
     missing = {"checkpoint_hash", "task", "condition", "lift", "place"} - set(rows.columns)
     if missing:
         raise ValueError(f"{path} lacks the sweep columns {sorted(missing)}")
+    manifest_path = Path(sweep_dir) / "sweep.json"
+    if not manifest_path.is_file():
+        raise FileNotFoundError(f"--sweep_dir={sweep_dir!r} has results.parquet but no sweep.json")
+    manifest = read_json_object(manifest_path, "Sweep manifest")
+    if (manifest.get("grid") or {}).get("counterbalanced"):
+        raise ValueError(
+            f"--sweep_dir={sweep_dir!r} is a counterbalanced sweep (another scene distribution); give the plain one"
+        )
+    hashes = {c.get("hash") for c in manifest.get("checkpoints", [])}
+    refuse_rows_outside(path, rows, ["checkpoint_hash"], lambda h: h in hashes, "sweep.json")
+    key = ["checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt"]
+    repeated = rows.duplicated([k for k in key if k in rows.columns], keep=False)
+    if repeated.any():
+        raise ValueError(
+            f"{path} holds {int(repeated.sum())} rows of repeated episodes; it is not one sweep's"
+        )
     names = {c: ConditionSpec.parse(c).name for c in rows["condition"].unique()}
     selected = rows[
         (rows["checkpoint_hash"] == checkpoint_hash)

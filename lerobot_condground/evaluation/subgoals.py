@@ -280,17 +280,19 @@ def check_same_run(root: Path, mode: str, condition: str, run: dict, rows: pd.Da
 
 def check_rows_against_runs(path: Path, rows: pd.DataFrame, runs: dict) -> None:
     """Every trial row belongs to a run of the manifest: its condition, one of its subgoals, a trial below
-    its trial count."""
+    its trial count, its checkpoint."""
 
-    def belongs(condition, subgoal, episode) -> bool:
+    def belongs(condition, subgoal, episode, checkpoint_hash) -> bool:
         run = runs.get(condition)
         return (
             isinstance(run, dict)
             and subgoal in run.get("subgoals", [])
             and 0 <= episode < run.get("trials", 0)
+            and checkpoint_hash == (run.get("checkpoint") or {}).get("hash")
         )
 
-    refuse_rows_outside(path, rows, ["condition", "subgoal", "episode"], belongs, MANIFEST)
+    columns = ["condition", "subgoal", "episode", "checkpoint_hash"]
+    refuse_rows_outside(path, rows, columns, belongs, MANIFEST)
 
 
 def read_rows(root: Path) -> pd.DataFrame:

@@ -177,7 +177,25 @@ def test_diagnose_act_modified_files_and_sweep(tiny_checkpoints, tmp_path):
             "place": False,
         },
     ]
+    for i, row in enumerate(rows):  # one episode each
+        row.update(eval_seed=0, episode=i, layout_seed=1_000_000 + i)
     pd.DataFrame(rows).to_parquet(sweep / "results.parquet")
+    manifest = {
+        "grid": {"task": TASK, "counterbalanced": False},
+        "checkpoints": [{"hash": digest}, {"hash": "0" * 16}],
+    }
+    (sweep / "sweep.json").write_text(json.dumps(manifest))
+    # Rows the sweep's manifest does not vouch for, or another scene distribution, are refused, not counted.
+    from lerobot_condground.diagnosis.diagnose import conditional_placement
+
+    for changed, message in (
+        ({"checkpoints": [{"hash": digest}]}, "checkpoint_hash='0000000000000000'.*is not part of the run"),
+        ({"grid": {"task": TASK, "counterbalanced": True}}, "is a counterbalanced sweep"),
+    ):
+        (sweep / "sweep.json").write_text(json.dumps({**manifest, **changed}))
+        with pytest.raises(ValueError, match=message):
+            conditional_placement(str(sweep), digest, TASK, "full_mixed")
+    (sweep / "sweep.json").write_text(json.dumps(manifest))
 
     out = tmp_path / "diag"
     result = _diagnose(checkpoint, out, sweep_dir=str(sweep))
