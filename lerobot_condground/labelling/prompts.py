@@ -327,6 +327,12 @@ def label_dataset(cfg: PromptsConfig) -> dict:
         bar.close()
 
     work = None
+    # Written beside the output and renamed when whole, as augment does; an earlier run's partial copy goes.
+    partial = out_root.with_name(f".{out_root.name}.partial")
+    if partial.exists():
+        logging.info("Removing %s, the partial copy of an earlier run that did not finish", partial)
+        shutil.rmtree(partial)
+    out_root.parent.mkdir(parents=True, exist_ok=True)
     try:
         if len(episodes) < meta.total_episodes:
             # add_features writes every frame of its input: drop the other episodes first (LeRobot's
@@ -346,13 +352,13 @@ def label_dataset(cfg: PromptsConfig) -> dict:
                     {"dtype": "int64", "shape": (1,), "names": ["phase"]},
                 ),
             },
-            output_dir=out_root,
+            output_dir=partial,
             repo_id=out_repo,
         )
     finally:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
-    (out_root / PROMPTS_FILE).write_text(
+    (partial / PROMPTS_FILE).write_text(
         json.dumps(
             {
                 "source": {"repo_id": cfg.dataset.repo_id, "root": str(src_root)},
@@ -373,6 +379,7 @@ def label_dataset(cfg: PromptsConfig) -> dict:
             indent=1,
         )
     )
+    partial.rename(out_root)  # only a whole copy takes the output's name: a failed run never blocks the rerun
     return {
         "episodes": len(episodes),
         "frames": frames,

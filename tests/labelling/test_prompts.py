@@ -310,23 +310,23 @@ def test_condground_prompts_one_episode_and_one_set_of_prompts(hardware_like_dat
 
     root, _, clicks = hardware_like_dataset
     out = tmp_path / "one"
-    assert (
-        cli.main(
-            [
-                "prompts",
-                "--dataset.repo_id=local/test_hw",
-                f"--dataset.root={root}",
-                "--segmenter=color",
-                f"--object={clicks[1]['object']}",
-                f"--receptacle={clicks[1]['receptacle']}",
-                "--competitors=5,5;0,0,10,10",
-                "--episodes=1",
-                f"--output.root={out}",
-                "--progress=false",
-            ]
-        )
-        == 0
-    )
+    args = [
+        "prompts",
+        "--dataset.repo_id=local/test_hw",
+        f"--dataset.root={root}",
+        "--segmenter=color",
+        f"--object={clicks[1]['object']}",
+        f"--receptacle={clicks[1]['receptacle']}",
+        "--competitors=5,5;0,0,10,10",
+        "--episodes=1",
+        f"--output.root={out}",
+        "--progress=false",
+    ]
+    # The copy is written beside the output and renamed when whole: a killed run's leftover is cleared.
+    leftover = tmp_path / ".one.partial"
+    (leftover / "meta").mkdir(parents=True)
+    assert cli.main(args) == 0
+    assert not leftover.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["one"]
     one = LeRobotDataset("local/test_hw_prompts", root=out)
     assert one.meta.total_episodes == 1
     assert one.meta.total_frames == int(LeRobotDataset("local/test_hw", root=root).meta.episodes[1]["length"])
