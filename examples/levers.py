@@ -36,11 +36,10 @@ from lerobot_condground.core.training import CPU_BATCH_SIZE, policy_flags
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import paired_difference, rate
 
-BASELINE = "baseline"
 
-
-def parse_levers(specs: list[str]) -> dict[str, list[str]]:
-    arms = {BASELINE: []}
+def parse_levers(specs: list[str], baseline: str) -> dict[str, list[str]]:
+    """The baseline arm (no flags of its own) first, then each lever."""
+    arms = {baseline: []}
     for spec in specs:
         name, sep, flags = spec.partition("=")
         if not sep or not name.isidentifier() or name in arms:
@@ -198,16 +197,17 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
         pooled[arm] = columns
     rows = []
     for arm in arms:
-        if arm == BASELINE:
+        if arm == args.baseline:
             continue
-        for ours, theirs in zip(pooled[BASELINE], pooled[arm], strict=True):
+        for ours, theirs in zip(pooled[args.baseline], pooled[arm], strict=True):
             if not ours["layout_seed"].equals(theirs["layout_seed"]):
                 raise SystemExit(f"{arm}: the baseline and the lever were evaluated on different layouts")
-        a = pd.concat([c["success"] for c in pooled[BASELINE]]).to_numpy()
+        a = pd.concat([c["success"] for c in pooled[args.baseline]]).to_numpy()
         b = pd.concat([c["success"] for c in pooled[arm]]).to_numpy()
         d = paired_difference(a, b)
         rows.append(
-            {"lever": arm, "task": args.task, "seeds": len(args.seeds), "n": d["n"], "baseline": d["rate_a"],
+            {"lever": arm, "task": args.task, "baseline_arm": args.baseline, "seeds": len(args.seeds), "n": d["n"],
+             "baseline": d["rate_a"],
              "treated": d["rate_b"], "diff": d["diff"], "diff_low": d["low"], "diff_high": d["high"],
              "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.steps,
              "checkpoints": " ".join(map(str, steps))}
@@ -319,6 +319,12 @@ def main() -> None:
     parser.add_argument("--variant", default="standard")
     parser.add_argument("--lever", action="append", default=[], help="NAME=FLAGS (lerobot-train flags)")
     parser.add_argument("--flags", default="", help="flags for every arm, baseline included")
+    parser.add_argument(
+        "--baseline",
+        default="baseline",
+        help="the baseline arm's name in run folders and tables (e.g. the "
+        "lever an earlier wave adopted, whose runs it reuses)",
+    )
     parser.add_argument("--seeds", default="0,1")
     parser.add_argument("--steps", type=int, default=9000)
     parser.add_argument("--every", type=int, default=1500)
@@ -346,7 +352,7 @@ def main() -> None:
         parser.error("give at least one --lever=NAME=FLAGS")
     args.seeds = [int(s) for s in args.seeds.split(",")]
     args.flags = shlex.split(args.flags)
-    arms = parse_levers(args.lever)
+    arms = parse_levers(args.lever, args.baseline)
     if args.stage in ("all", "train"):
         train_all(args, arms)
     if args.stage in ("all", "evaluate"):

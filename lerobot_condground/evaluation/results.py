@@ -109,8 +109,28 @@ def refuse_rows_outside(path: Path, frame, columns: list[str], belongs, manifest
     ok = [bool(belongs(*values)) for values in frame[columns].itertuples(index=False, name=None)]
     if not all(ok):
         i = ok.index(False)
-        row = ", ".join(f"{c}={frame[c].iloc[i]!r}" for c in columns)
+        values = [frame[c].iloc[i] for c in columns]
+        row = ", ".join(
+            f"{c}={v.item() if hasattr(v, 'item') else v!r}" for c, v in zip(columns, values, strict=True)
+        )
         raise ValueError(
             f"{path}: row {i} ({row}) is not part of the run {manifest} describes ({ok.count(False)} such rows); "
             "rows outside the manifest are never counted: rerun into a new --output_dir"
         )
+
+
+def check_rows_against_runs(path: Path, rows: pd.DataFrame, runs: dict) -> None:
+    """Every trial row belongs to a run of the manifest: its condition, one of its subgoals, a trial below
+    its trial count, its checkpoint."""
+
+    def belongs(condition, subgoal, episode, checkpoint_hash) -> bool:
+        run = runs.get(condition)
+        return (
+            isinstance(run, dict)
+            and subgoal in run.get("subgoals", [])
+            and 0 <= episode < run.get("trials", 0)
+            and checkpoint_hash == (run.get("checkpoint") or {}).get("hash")
+        )
+
+    columns = ["condition", "subgoal", "episode", "checkpoint_hash"]
+    refuse_rows_outside(path, rows, columns, belongs, "subgoals.json")

@@ -43,7 +43,12 @@ from lerobot_condground.evaluation.checkpoints import (
     processor_steps,
     resolve_device,
 )
-from lerobot_condground.evaluation.results import TABLE_COLUMNS, read_table, refuse_rows_outside, write_table
+from lerobot_condground.evaluation.results import (
+    TABLE_COLUMNS,
+    check_rows_against_runs,
+    read_table,
+    write_table,
+)
 from lerobot_condground.evaluation.rollout import EnvSpec, run_episodes
 from lerobot_condground.evaluation.statistics import SUBGOAL_POOLS, SUBGOAL_TITLES, subgoal_rates
 from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT, layout_seed
@@ -276,23 +281,6 @@ def check_same_run(root: Path, mode: str, condition: str, run: dict, rows: pd.Da
                 "Rerun with the same flags to resume it, or choose a new --output_dir."
             )
     return manifest
-
-
-def check_rows_against_runs(path: Path, rows: pd.DataFrame, runs: dict) -> None:
-    """Every trial row belongs to a run of the manifest: its condition, one of its subgoals, a trial below
-    its trial count, its checkpoint."""
-
-    def belongs(condition, subgoal, episode, checkpoint_hash) -> bool:
-        run = runs.get(condition)
-        return (
-            isinstance(run, dict)
-            and subgoal in run.get("subgoals", [])
-            and 0 <= episode < run.get("trials", 0)
-            and checkpoint_hash == (run.get("checkpoint") or {}).get("hash")
-        )
-
-    columns = ["condition", "subgoal", "episode", "checkpoint_hash"]
-    refuse_rows_outside(path, rows, columns, belongs, MANIFEST)
 
 
 def read_rows(root: Path) -> pd.DataFrame:

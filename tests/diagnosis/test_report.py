@@ -559,6 +559,7 @@ def write_subgoals(folder: Path, successes: dict, scored_by: str = "env") -> Pat
         ck = checkpoint("act", 0, condition)
         runs[condition] = {
             "checkpoint": ck,
+            "subgoals": list(per_subgoal),
             "trials": 5,
             "command": ["condground", "subgoals", f"--condition={condition}"],
         }
@@ -629,6 +630,10 @@ def test_values_from_the_inputs_stay_text_in_markdown(inputs, tmp_path):
     frame["policy_label"] = frame["policy_label"].replace("act", f"act {image} {link}")
     pq.write_table(pa.Table.from_pandas(frame, preserve_index=False).replace_schema_metadata(rows.schema.metadata),
                    sweep / "results.parquet")  # fmt: skip
+    manifest = json.loads((sweep / "sweep.json").read_text())  # the label as the sweep itself was given it
+    for ck in manifest["checkpoints"]:
+        ck["label"] = f"act {image} {link}" if ck["label"] == "act" else ck["label"]
+    (sweep / "sweep.json").write_text(json.dumps(manifest))
     diag = tmp_path / "diag"
     shutil.copytree(inputs[2], diag)
     data = json.loads((diag / "diagnostics.json").read_text())

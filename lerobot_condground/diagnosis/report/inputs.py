@@ -15,8 +15,12 @@ import pandas as pd
 
 from lerobot_condground.core.conditions import ROUTING_TASK
 from lerobot_condground.core.files import read_json_object
-from lerobot_condground.evaluation.results import read_metadata, read_table, refuse_rows_outside
-from lerobot_condground.evaluation.subgoals import check_rows_against_runs
+from lerobot_condground.evaluation.results import (
+    check_rows_against_runs,
+    read_metadata,
+    read_table,
+    refuse_rows_outside,
+)
 
 KIND_FILES = {
     "sweep.json": "sweep",
