@@ -174,7 +174,16 @@ def check_dataset_paths(root: Path) -> None:
             continue
         if not isinstance(template, str):
             raise PermissionError(f"{info_file}: {field} is {template!r}; allowed: a relative path template")
-        names = {name for _, name, _, _ in string.Formatter().parse(template) if name}
+        fields = [(name, spec) for _, name, spec, _ in string.Formatter().parse(template) if name]
+        names = {name for name, _ in fields}
+        # Chunk and file indices come from meta/episodes: formatted as integers, a string there cannot name
+        # a path (LeRobot's own templates all read `{chunk_index:03d}`).
+        loose = [name for name, spec in fields if name != "video_key" and not (spec or "").endswith("d")]
+        if loose:
+            raise PermissionError(
+                f"{info_file}: {field} {template!r} formats {loose[0]!r} without an integer format; allowed: "
+                f"{{{loose[0]}:03d}} as LeRobot writes it"
+            )
         for key in video_keys if "video_key" in names else [None]:
             try:
                 path = template.format(**dict.fromkeys(names - {"video_key"}, 0), video_key=key)

@@ -267,6 +267,8 @@ def run_attention(cfg: AttentionConfig) -> Path:
 
     out = Path(cfg.output_dir)
     (out / "stills").mkdir(parents=True, exist_ok=True)
+    # An earlier run's JSON would describe this run's files if it stopped before writing its own.
+    (out / "attention.json").unlink(missing_ok=True)
     for old in (out / "stills").glob("step_*.png"):
         old.unlink()
     video = VideoWriter(out / "attention.mp4", spec.fps, codec)

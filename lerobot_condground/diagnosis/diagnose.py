@@ -469,6 +469,8 @@ def run_diagnose(cfg: DiagnoseConfig) -> Path:
     )
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # An earlier run's JSON would describe this run's figures if it stopped before writing its own.
+    (out / "diagnostics.json").unlink(missing_ok=True)
     seeds = [opts.seed + i for i in range(opts.pairs)]
     logger.info(
         "diagnose %s (%s): %d matched pairs %s / %s on %s",

@@ -57,6 +57,13 @@ def run_probe(cfg: ProbeConfig) -> Path:
     if cfg.probe.episodes < 1:
         raise ValueError(f"--probe.episodes={cfg.probe.episodes} must be at least 1")
     check_seed("--probe.seed_offset", cfg.probe.seed_offset, EPISODES_PER_SEED_LIMIT)
+    # Its results.parquet would replace another command's (a subgoals run's operator-scored trials).
+    foreign = [n for n in ("sweep.json", "subgoals.json") if (Path(cfg.output_dir) / n).exists()]
+    if foreign:
+        raise FileExistsError(
+            f"--output_dir={cfg.output_dir} holds {foreign[0]}, another command's results; allowed: a new folder "
+            "or one `condground probe` wrote"
+        )
     if cfg.env.condition is not None:
         raise ValueError(
             f"--env.condition={cfg.env.condition!r} is not a probe flag; allowed: the probed competitor "

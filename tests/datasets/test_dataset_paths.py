@@ -45,6 +45,12 @@ def hostile_datasets(plain_dataset, tmp_path, victim):
             tampered(plain_dataset, tmp_path / "dotdot", video_path="../victim/{video_key}.mp4"),
             "video_path '../victim/{video_key}.mp4' names '../victim/observation.images.top.mp4', outside",
         ),
+        "string indices": (
+            tampered(
+                plain_dataset, tmp_path / "indices", data_path="data/{chunk_index}/{file_index:03d}.parquet"
+            ),
+            "formats 'chunk_index' without an integer format",
+        ),
         "feature name": (
             tampered(plain_dataset, tmp_path / "feature", rename_video="observation.images/../../../victim"),
             "(for feature 'observation.images/../../../victim')",

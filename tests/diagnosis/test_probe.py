@@ -68,3 +68,9 @@ def test_probe_refuses_a_policy_without_prompts(tmp_path):
         run_probe(cfg)
     with pytest.raises(ValueError, match="Unknown --probe.role='cup'; allowed: object, receptacle"):
         run_probe(ProbeConfig(policy=PolicyRefConfig(path=str(ckpt)), probe=ProbeSettings(role="cup")))
+    # Another command's folder (a subgoals run's operator-scored trials) is never overwritten.
+    (tmp_path / "subgoals").mkdir()
+    (tmp_path / "subgoals" / "subgoals.json").write_text("{}")
+    with pytest.raises(FileExistsError, match="holds subgoals.json, another command's results"):
+        run_probe(ProbeConfig(policy=PolicyRefConfig(path=str(ckpt)), output_dir=str(tmp_path / "subgoals")))
+    assert sorted(p.name for p in (tmp_path / "subgoals").iterdir()) == ["subgoals.json"]
