@@ -175,6 +175,9 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
     provenance_path = root / RECORD_FILE
     if (root / "meta" / "info.json").exists():
         info = read_json_object(root / "meta" / "info.json", "Dataset info")
+        if info.get("total_episodes") == 0 and provenance_path.exists():
+            _remove_empty_recording(root)
+            return _open_dataset(cfg, root, features)
         previous = (
             read_json_object(provenance_path, "Recording provenance") if provenance_path.exists() else {}
         )
@@ -204,6 +207,8 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         # LeRobot would encode them into the next episode's video along with its own.
         dataset.clear_episode_buffer(delete_images=True)
         return dataset, previous
+    if root.is_dir() and not any(root.iterdir()):
+        root.rmdir()  # LeRobot creates the folder itself and refuses an existing one, even empty
     # Not LeRobot's streaming encoder: when its queue is full (a busy CPU, our burst of add_frame calls)
     # it drops frames with only a warning, and the video ends up shorter than the episode.
     dataset = LeRobotDataset.create(
@@ -216,6 +221,33 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         streaming_encoding=False,
     )
     return dataset, {}
+
+
+def _remove_empty_recording(root: Path) -> None:
+    """A recording of ours that saved no episode pins nothing: a failed or stopped first run must not refuse
+    the corrected rerun. Removes only what the recorder writes; anything else in the folder is kept and
+    refused."""
+    owned = [
+        root / RECORD_FILE,
+        *(root / "meta" / name for name in ("info.json", "stats.json", "tasks.parquet")),
+    ]
+    # What a run killed while it saved its first episode leaves: frames, a data or video file, episode metadata.
+    for folder in ("images", "data", "videos", "meta/episodes"):
+        owned += [path for path in (root / folder).rglob("*") if path.is_file()]
+    for path in owned:
+        path.unlink(missing_ok=True)
+    for folder in sorted(
+        (p for p in root.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True
+    ):
+        if not any(folder.iterdir()):
+            folder.rmdir()
+    left = sorted(str(p.relative_to(root)) for p in root.iterdir())
+    if left:
+        raise FileExistsError(
+            f"--dataset.root={root} holds an empty recording and files the recorder did not write ({left[:5]}); "
+            "choose another --dataset.root"
+        )
+    root.rmdir()
 
 
 def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
@@ -285,9 +317,10 @@ def record(cfg: RecordConfig) -> dict:
                 state["failed_seeds"].append(seed)
                 consecutive_failures += 1
                 if consecutive_failures >= cfg.max_consecutive_failures:
-                    raise RuntimeError(
-                        f"The expert failed {consecutive_failures} episodes in a row (last seed {seed}); "
-                        f"the environment is broken for task={cfg.env.task} condition={cfg.env.condition}"
+                    raise ValueError(
+                        f"The expert failed {consecutive_failures} episodes in a row (last seed {seed}) with "
+                        f"--env.episode_length={cfg.env.episode_length}: too short for the task, or the "
+                        f"environment is broken for task={cfg.env.task} condition={cfg.env.condition}"
                     )
                 continue
             consecutive_failures = 0

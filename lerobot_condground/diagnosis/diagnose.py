@@ -153,7 +153,7 @@ def conditional_placement(
 
     from lerobot_condground.core.conditions import ConditionSpec
     from lerobot_condground.core.files import read_json_object
-    from lerobot_condground.evaluation.results import refuse_rows_outside
+    from lerobot_condground.evaluation.results import EPISODE_KEY, refuse_rows_outside
 
     path = Path(sweep_dir) / "results.parquet"
     if not path.is_file():
@@ -174,7 +174,7 @@ def conditional_placement(
         )
     hashes = {c.get("hash") for c in manifest.get("checkpoints", [])}
     refuse_rows_outside(path, rows, ["checkpoint_hash"], lambda h: h in hashes, "sweep.json")
-    key = ["checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt"]
+    key = list(EPISODE_KEY)
     repeated = rows.duplicated([k for k in key if k in rows.columns], keep=False)
     if repeated.any():
         raise ValueError(

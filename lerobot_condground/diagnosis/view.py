@@ -55,8 +55,6 @@ class ViewConfig:
 def _start(name: str, output: str | None):
     import rerun as rr
 
-    if output is not None and not output.endswith(".rrd"):
-        raise ValueError(f"--output={output!r} is not allowed; allowed: a file name ending in .rrd")
     rr.init(name, spawn=False)
     if output is None:
         rr.spawn()
@@ -174,6 +172,8 @@ def view_attention(cfg: ViewConfig) -> None:
 
 
 def run_view(cfg: ViewConfig) -> None:
+    if cfg.output is not None and not cfg.output.endswith(".rrd"):
+        raise ValueError(f"--output={cfg.output!r} is not allowed; allowed: a file name ending in .rrd")
     if cfg.attention_dir is not None:
         view_attention(cfg)
     else:

@@ -110,16 +110,17 @@ def check_processor_steps(path: str, trust_remote_code: bool) -> None:
     from lerobot.processor.pipeline import ProcessorStepRegistry
 
     register_plugins()
+    registered = set(ProcessorStepRegistry.list())
     by_class = {
         f"{cls.__module__}.{cls.__name__}": name
-        for name, cls in ((name, ProcessorStepRegistry.get(name)) for name in ProcessorStepRegistry.list())
+        for name, cls in ((name, ProcessorStepRegistry.get(name)) for name in registered)
     }
     for file, index, step in processor_steps(path):
         check_state_file(file, index, step)
         if trust_remote_code:
             continue
         name = step.get("registry_name") if "registry_name" in step else by_class.get(step.get("class"))
-        if not isinstance(name, str) or name not in ProcessorStepRegistry.list():
+        if not isinstance(name, str) or name not in registered:
             named = (
                 f"registry name {step['registry_name']!r}"
                 if "registry_name" in step

@@ -64,6 +64,9 @@ COLUMNS = IDENTITY_COLUMNS + OUTCOME_COLUMNS
 # envs/routing_env.py); scored_by says who judged success: "env", or "operator" on hardware.
 LATER_COLUMNS = ("subgoal", "destination", "route_choice", "placed_in", "scored_by")
 TABLE_COLUMNS = COLUMNS + LATER_COLUMNS
+# One episode: the same weights on the same layout under the same condition and prompt. Sweeps of one
+# checkpoint with different seed offsets hold different layouts and may be combined.
+EPISODE_KEY = ("checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt")
 METADATA_KEY = b"condground"
 
 

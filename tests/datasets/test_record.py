@@ -109,6 +109,29 @@ def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
     assert LeRobotDataset("local/resume", root=root).meta.total_episodes == 2
 
 
+def test_a_recording_that_saved_no_episode_does_not_block_the_corrected_rerun(tmp_path):
+    root = tmp_path / "ds"
+    common = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/empty", f"--dataset.root={root}",
+              "--progress=false", "--dataset.num_episodes=1"]  # fmt: skip
+    failed = run_cli(
+        "condground", "record", *common, "--env.observation_height=64", "--env.observation_width=80",
+        "--env.episode_length=3", "--max_consecutive_failures=1", check=False,
+    )  # fmt: skip
+    assert failed.returncode == 2, failed.stderr[-2000:]
+    assert "--env.episode_length=3" in failed.stderr.strip().splitlines()[-1]
+    assert (root / RECORD_FILE).exists()  # the failed seed is on record until a rerun starts afresh
+    (root / "notes.txt").write_text("mine")
+    refused = run_cli("condground", "record", *common, check=False)
+    assert refused.returncode == 2 and "notes.txt" in refused.stderr, refused.stderr[-2000:]
+    assert (root / "notes.txt").read_text() == "mine"
+    (root / "notes.txt").unlink()
+    out = run_cli(
+        "condground", "record", *common, "--env.observation_height=96", "--env.observation_width=128"
+    )
+    assert "expert success: 1/1" in out.stdout
+    assert LeRobotDataset("local/empty", root=root).meta.total_episodes == 1
+
+
 def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
     root = tmp_path / "ds"
     args = [

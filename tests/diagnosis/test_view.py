@@ -5,7 +5,6 @@ read back with rerun's own `rerun rrd print`."""
 import os
 import re
 import subprocess
-from collections import Counter
 
 import pytest
 
@@ -24,10 +23,8 @@ def entities(rrd, tmp_path) -> dict[str, set[str]]:
     )
     assert out.returncode == 0, out.stderr[-2000:]
     found: dict[str, set[str]] = {}
-    counts = Counter()
     for path, columns in re.findall(r" - (/\S*) - data columns: \[([^\]]*)\]", out.stdout):
         found.setdefault(path, set()).update(c.split(":")[0] for c in columns.split())
-        counts[path] += 1
     assert found, out.stdout[:2000]
     return found
 

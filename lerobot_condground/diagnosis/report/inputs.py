@@ -16,6 +16,7 @@ import pandas as pd
 from lerobot_condground.core.conditions import ROUTING_TASK
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.evaluation.results import (
+    EPISODE_KEY,
     check_rows_against_runs,
     read_metadata,
     read_table,
@@ -29,10 +30,7 @@ KIND_FILES = {
     "probe.json": "probe",
     "attention.json": "attention",
 }
-# One episode: the same weights on the same layout under the same condition and prompt. Sweeps of one
-# checkpoint with different seed offsets hold different layouts and may be combined.
 COUNTERBALANCED = " (counterbalanced)"
-EPISODE_KEY = ("checkpoint_hash", "task", "condition", "eval_seed", "episode", "layout_seed", "prompt")
 # One trial of `condground subgoals`: the same weights on the same layout under the same condition and scorer.
 TRIAL_KEY = ("checkpoint_hash", "condition", "subgoal", "layout_seed", "scored_by")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
