@@ -20,6 +20,8 @@ decision, every `state_file` must be a file inside the checkpoint's folder.
 
 from __future__ import annotations
 
+import functools
+import os
 import re
 from pathlib import Path
 
@@ -98,8 +100,41 @@ HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
 OPT_IN = "pass --policy.trust_remote_code=true if you trust this checkpoint's author"
 
 
+@functools.cache
+def pinned_folder(source: str) -> Path:
+    """A checkpoint's folder: a local directory, or a hub id's snapshot at one commit, resolved once per
+    process so that the files checked are the files loaded (a push between two downloads would otherwise
+    load unchecked files). Hand this folder, not the id, to worker processes."""
+    local = Path(source)
+    if local.is_dir():
+        return local
+    from huggingface_hub import snapshot_download
+
+    try:
+        return Path(snapshot_download(source))
+    except Exception as err:  # invalid id, not cached while offline, no such repo, network
+        raise FileNotFoundError(
+            f"{source!r} is not a checkpoint directory and cannot be fetched as a hub id "
+            f"({type(err).__name__}: {str(err).splitlines()[0]})"
+        ) from None
+
+
+def _hub_snapshot(root: Path) -> bool:
+    """A snapshot in huggingface_hub's cache: its files link to the repo's blobs two levels up, by design."""
+    return root.parent.name == "snapshots" and root.parent.parent.name.startswith("models--")
+
+
+def within(root: Path, path: Path) -> bool:
+    """`path` (relative to `root`, or absolute) names something inside `root`, also once links are followed."""
+    base = Path(os.path.normpath(root.absolute()))
+    target = Path(os.path.normpath(base / path))
+    if not target.is_relative_to(base):
+        return False
+    return _hub_snapshot(base) or target.resolve().is_relative_to(base.resolve())
+
+
 def inside(root: Path, value: str) -> bool:
-    return not Path(value).is_absolute() and (root / value).resolve().is_relative_to(root.resolve())
+    return not Path(value).is_absolute() and within(root, Path(value))
 
 
 def check_name(root: Path, value, where: str) -> None:
@@ -110,7 +145,7 @@ def check_name(root: Path, value, where: str) -> None:
     looks_local = (
         local.exists() or value.startswith(("/", ".", "~")) or "\\" in value or not HUB_ID.fullmatch(value)
     )
-    if looks_local and not local.resolve().is_relative_to(root.resolve()):
+    if looks_local and not within(root, local.absolute()):
         raise PermissionError(
             f"{where} is {value!r}, a path outside the checkpoint's folder {root}; allowed: a hub id or a path "
             f"inside it (copy what it names into the checkpoint), or {OPT_IN}"

@@ -170,7 +170,7 @@ def _load(cfg: FitConfig):
     path = cfg.policy.single()
     described = describe_checkpoint(path, cfg.policy.label, trust_remote_code=cfg.policy.trust_remote_code)
     check_act_family(described)
-    policy_cfg = PreTrainedConfig.from_pretrained(path)
+    policy_cfg = PreTrainedConfig.from_pretrained(described.local)
     steps = policy_cfg.n_action_steps if opts.steps is None else opts.steps
     if not 1 <= steps <= policy_cfg.chunk_size:
         raise ValueError(
@@ -193,13 +193,13 @@ def _load(cfg: FitConfig):
     if lacking:
         raise ValueError(f"Dataset {root} lacks {', '.join(lacking)}, which checkpoint {path} reads")
     device = resolve_device(cfg.policy.device)
-    policy_cfg.pretrained_path = Path(path) if Path(path).is_dir() else path
+    policy_cfg.pretrained_path = Path(described.local)
     policy_cfg.device = device
-    policy = get_policy_class(policy_cfg.type).from_pretrained(path, config=policy_cfg)
+    policy = get_policy_class(policy_cfg.type).from_pretrained(described.local, config=policy_cfg)
     policy.eval()
     preprocessor, postprocessor = make_pre_post_processors(
         policy_cfg=policy_cfg,
-        pretrained_path=str(path),
+        pretrained_path=described.local,
         preprocessor_overrides={"device_processor": {"device": device}},
     )
     dataset = LeRobotDataset(

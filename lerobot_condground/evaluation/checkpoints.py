@@ -14,7 +14,13 @@ from pathlib import Path
 from typing import Any
 
 from lerobot_condground.core.files import read_json_object
-from lerobot_condground.core.trust import OPT_IN, check_policy_type, check_state_file, check_step
+from lerobot_condground.core.trust import (
+    OPT_IN,
+    check_policy_type,
+    check_state_file,
+    check_step,
+    pinned_folder,
+)
 
 EXPERT = "expert"
 CAMERA_PREFIX = "observation.images."
@@ -28,6 +34,7 @@ class LoadedPolicy:
     variant: str
     hash: str
     training_seed: int | None
+    local: str = ""  # the folder its files are read from (a hub id's pinned snapshot)
     cameras: dict[str, tuple[int, int]] = field(default_factory=dict)  # name -> (height, width)
     vectors: dict[str, tuple[int, ...]] = field(default_factory=dict)  # state and action shapes
     needs_prompts: bool = False
@@ -64,23 +71,18 @@ class LoadedPolicy:
         }
 
 
+def local_checkpoint(path: str) -> Path:
+    """The folder a checkpoint's files are read from (trust.pinned_folder: a hub id's snapshot, once)."""
+    try:
+        return pinned_folder(path)
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"Policy path {err}; or use `{EXPERT}` for the scripted expert") from None
+
+
 def checkpoint_file(path: str, name: str) -> Path | None:
     """A file of a checkpoint directory or hub repo; None if the checkpoint has no such file."""
-    local = Path(path)
-    if local.is_dir():
-        return local / name if (local / name).is_file() else None
-    from huggingface_hub import hf_hub_download
-    from huggingface_hub.errors import EntryNotFoundError
-
-    try:
-        return Path(hf_hub_download(path, name))
-    except EntryNotFoundError:
-        return None
-    except Exception as err:  # invalid id, not cached while offline, no such repo, network
-        raise FileNotFoundError(
-            f"Policy path {path!r} is not a checkpoint directory and cannot be fetched as a hub id "
-            f"({type(err).__name__}: {str(err).splitlines()[0]}); or use `{EXPERT}` for the scripted expert"
-        ) from None
+    file = local_checkpoint(path) / name
+    return file if file.is_file() else None
 
 
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
@@ -240,6 +242,7 @@ def describe_checkpoint(
         policy_type=policy_type,
         variant=variant,
         hash=checkpoint_hash(path),
+        local=str(local_checkpoint(path)),
         training_seed=seed if seed is not None else index,
         cameras=cameras,
         vectors=vectors,
@@ -313,15 +316,15 @@ def load_policy(
     from lerobot.envs.factory import make_env_pre_post_processors
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    cfg = PreTrainedConfig.from_pretrained(path)
-    cfg.pretrained_path = Path(path) if Path(path).is_dir() else path
+    cfg = PreTrainedConfig.from_pretrained(loaded.local)
+    cfg.pretrained_path = Path(loaded.local)
     cfg.device = device
     policy = make_policy(cfg=cfg, env_cfg=env_cfg)
     policy.eval()
     loaded.policy = policy
     loaded.preprocessor, loaded.postprocessor = make_pre_post_processors(
         policy_cfg=cfg,
-        pretrained_path=str(path),
+        pretrained_path=loaded.local,
         preprocessor_overrides={"device_processor": {"device": device}},
     )
     loaded.env_preprocessor, loaded.env_postprocessor = make_env_pre_post_processors(

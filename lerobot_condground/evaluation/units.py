@@ -78,7 +78,7 @@ def make_jobs(
         jobs.append(
             {
                 "unit": unit,
-                "path": loaded.path,
+                "path": loaded.local or loaded.path,  # a hub id's snapshot, as checked
                 "label": loaded.label,
                 "index": unit.checkpoint,
                 "trust_remote_code": loaded.trust_remote_code,

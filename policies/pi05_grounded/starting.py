@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import copy
 import json
+import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -20,7 +22,7 @@ import draccus
 import torch
 from safetensors import safe_open
 
-from lerobot_condground.core.trust import check_name
+from lerobot_condground.core.trust import check_name, pinned_folder
 
 from .configuration_pi05_grounded import PI05GroundedConfig
 from .modeling_pi05_grounded import WEIGHTS, PI05GroundedPolicy, weights_file
@@ -33,21 +35,9 @@ def source_config(source: str, overrides: list[str]) -> PI05GroundedConfig:
     """The source checkpoint's configuration as `pi05_grounded`, with `--key=value` overrides on top."""
     from huggingface_hub.constants import CONFIG_NAME
 
-    path = Path(source)
-    if path.is_dir():
-        config_file = path / CONFIG_NAME
-        if not config_file.is_file():
-            raise FileNotFoundError(f"--policy.path={source}: {config_file} is missing")
-    else:
-        from huggingface_hub import hf_hub_download
-
-        try:
-            config_file = Path(hf_hub_download(source, CONFIG_NAME))
-        except Exception as e:
-            raise FileNotFoundError(
-                f"--policy.path={source}: cannot get its {CONFIG_NAME} ({type(e).__name__}); give a local "
-                "checkpoint directory, or download the repository first where the hub is reachable"
-            ) from e
+    config_file = Path(source) / CONFIG_NAME
+    if not config_file.is_file():
+        raise FileNotFoundError(f"--policy.path={source}: {config_file} is missing")
     raw = json.loads(config_file.read_text())
     kind = raw.pop("type", None)
     if kind not in SOURCE_TYPES:
@@ -98,15 +88,29 @@ def write_starting_checkpoint(
 ) -> PI05GroundedConfig:
     if output_dir.exists() and any(output_dir.iterdir()):
         raise FileExistsError(f"--output_dir={output_dir} exists and is not empty; allowed: a new directory")
+    try:
+        source = str(pinned_folder(source))  # one snapshot of a hub id: the config and weights of one commit
+    except FileNotFoundError as err:
+        raise FileNotFoundError(
+            f"--policy.path: {err}; give a local checkpoint directory, or download it first where the hub is reachable"
+        ) from None
     config = source_config(source, overrides)
     take_dataset_features(config, dataset_meta.features)
     weights = weights_file(source)
     check_weights(config, weights)
     # Built before anything is written: an unreachable tokenizer fails here.
     pre, post = make_pi05_grounded_pre_post_processors(config, dataset_stats=dataset_meta.stats)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    config.save_pretrained(output_dir)
-    (output_dir / WEIGHTS).symlink_to(weights.resolve())
-    pre.save_pretrained(output_dir)
-    post.save_pretrained(output_dir)
+    # Written beside the output and renamed when whole: a failed run leaves no half checkpoint in
+    # --output_dir to block the rerun (a killed one at most a hidden `.NAME.*` folder beside it).
+    output_dir.parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.", dir=output_dir.parent))
+    try:
+        config.save_pretrained(partial)
+        (partial / WEIGHTS).symlink_to(weights.resolve())
+        pre.save_pretrained(partial)
+        post.save_pretrained(partial)
+        os.replace(partial, output_dir)  # onto nothing, or onto the empty folder checked above
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     return config

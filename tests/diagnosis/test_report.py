@@ -515,6 +515,21 @@ def test_a_report_replaces_only_what_it_wrote(inputs, tmp_path):
         assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
 
 
+def test_a_report_that_died_half_way_does_not_block_its_rerun(inputs, tmp_path, monkeypatch):
+    cfg = ReportConfig(input_dir=[str(inputs[4])], output=str(tmp_path / "r.html"))
+
+    def disk_full(self, data):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Path, "write_bytes", disk_full)  # the HTML is written, the first figure is not
+        with pytest.raises(OSError, match="No space left"):
+            build_report(cfg)
+    assert (tmp_path / "r.html").exists()
+    html_path, md_path = build_report(cfg)
+    assert md_path.exists() and list((tmp_path / "r_files").glob("*.png"))
+
+
 def test_input_json_cannot_reach_outside_its_folder_or_inject_html(inputs, tmp_path):
     secret = tmp_path / "secret.png"
     secret.write_bytes(png_bytes())

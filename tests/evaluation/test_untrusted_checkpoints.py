@@ -1,9 +1,12 @@
 """Checkpoints are untrusted input: loading one runs only installed code, and its identity covers every
 file that decides behaviour."""
 
+import hashlib
 import json
+import os
 import shutil
 import time
+from pathlib import Path
 
 import pytest
 
@@ -13,6 +16,7 @@ from lerobot_condground.diagnosis.attention import AttentionConfig, run_attentio
 from lerobot_condground.diagnosis.diagnose import DiagnoseConfig, run_diagnose
 from lerobot_condground.diagnosis.probe import ProbeConfig, run_probe
 from lerobot_condground.evaluation.checkpoints import checkpoint_hash, describe_checkpoint, load_policy
+from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.rollout import EnvSpec
 
 PREPROCESSOR = "policy_preprocessor.json"
@@ -145,3 +149,56 @@ def test_what_would_fail_inside_a_worker_fails_before_the_sweep_starts(tmp_path,
         assert main(args) == 2
         assert fragment in capsys.readouterr().err.strip().splitlines()[-1]
         assert not out.exists()
+
+
+def hub_snapshot(cache: Path, repo_id: str, files: Path, commit: str) -> Path:
+    """`files` as huggingface_hub leaves a download of `commit`, now the repo's main: blobs by content, the
+    snapshot's files linking to them."""
+    repo = cache / f"models--{repo_id.replace('/', '--')}"
+    snapshot = repo / "snapshots" / commit
+    snapshot.mkdir(parents=True)
+    for file in files.iterdir():
+        blob = repo / "blobs" / hashlib.sha256(file.read_bytes()).hexdigest()
+        blob.parent.mkdir(exist_ok=True)
+        shutil.copyfile(file, blob)
+        (snapshot / file.name).symlink_to(os.path.relpath(blob, snapshot))
+    (repo / "refs").mkdir(exist_ok=True)
+    (repo / "refs" / "main").write_text(commit)
+    return snapshot
+
+
+def test_a_hub_checkpoint_is_checked_and_loaded_from_one_snapshot(tmp_path, act_checkpoint, monkeypatch):
+    import huggingface_hub.constants
+
+    cache = tmp_path / "hub"
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(cache))
+    repo_id = f"local/{tmp_path.name}"  # a snapshot is pinned once per process: a new id per test
+    good = hub_snapshot(cache, repo_id, act_checkpoint, "a" * 40)
+    sweep = [
+        "condground", "sweep", f"--policy.path={repo_id}", "--sweep.conditions=clean", "--eval.n_episodes=1", "--eval.seeds=1",
+        "--env.episode_length=5", "--workers=1", "--progress=false",
+    ]  # fmt: skip
+    # Offline from the cache, whose state files link out of the snapshot into the repo's blobs.
+    run_cli(*sweep, f"--output_dir={tmp_path / 'sweep'}")
+    rows = read_table(tmp_path / "sweep" / "results.parquet")
+    assert set(rows.checkpoint) == {repo_id}
+    assert set(rows.checkpoint_hash) == {checkpoint_hash(str(act_checkpoint))}
+
+    described = describe_checkpoint(repo_id)
+    assert Path(described.local) == good
+    # The repo changes between the check and the load: this process loads what it checked.
+    marker = tmp_path / "pwned"
+    evil = with_step(
+        act_checkpoint,
+        tmp_path / "evil",
+        {"class": "subprocess.Popen", "config": {"args": ["touch", str(marker)]}},
+    )
+    hub_snapshot(cache, repo_id, evil, "b" * 40)
+    spec = EnvSpec.for_checkpoint(EvalEnvConfig(task="PickPlaceFixedBin-v0"), described, "clean")
+    assert load_policy(repo_id, spec.lerobot_config()).hash == described.hash
+    # A new process sees the new commit, and refuses it.
+    refused = run_cli(*sweep, f"--output_dir={tmp_path / 'again'}", check=False)
+    assert refused.returncode == 2 and "'subprocess.Popen'" in refused.stderr, refused.stderr[-2000:]
+    time.sleep(0.5)
+    assert not marker.exists()

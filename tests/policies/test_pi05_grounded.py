@@ -366,6 +366,35 @@ def test_pi05_start_takes_no_tokenizer_path_from_outside_its_source(tokenizer, t
     assert source_config(str(source), []).tokenizer_name == str(source / "tokenizer")
 
 
+def test_pi05_start_that_fails_half_way_leaves_nothing_in_the_way(
+    tokenizer, routing_dataset, tmp_path, monkeypatch
+):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.processor.pipeline import DataProcessorPipeline
+
+    from lerobot_condground.policies.pi05_grounded.starting import write_starting_checkpoint
+
+    source = tmp_path / "source"
+    make_policy(make_config(tokenizer, cls=PI05Config, labels=()), cls=PI05Policy).save_pretrained(source)
+    meta = LeRobotDatasetMetadata("local/routing", root=routing_dataset)
+    start, overrides = (
+        tmp_path / "out" / "start",
+        [f"--tokenizer_name={tokenizer}", "--grounding_layers=[0,1]"],
+    )
+
+    def disk_full(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    with tiny_pi05(), monkeypatch.context() as patch:
+        patch.setattr(DataProcessorPipeline, "save_pretrained", disk_full)  # config and weights written first
+        with pytest.raises(OSError, match="No space left"):
+            write_starting_checkpoint(str(source), overrides, meta, start)
+    assert list(start.parent.iterdir()) == []
+    with tiny_pi05():
+        write_starting_checkpoint(str(source), overrides, meta, start)
+    assert sorted(p.name for p in start.iterdir())[:2] == ["config.json", "model.safetensors"]
+
+
 def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_path, monkeypatch):
     tests = Path(__file__).parents[1]
     monkeypatch.setenv("PYTHONPATH", f"{tests / 'pi05_site'}:{tests}")
@@ -402,7 +431,7 @@ def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_pat
     )
     assert (from_hub / "model.safetensors").resolve() == (snapshot / "model.safetensors").resolve()
     missing = run_cli("condground", "pi05-start", "--policy.path=local/absent", *flags[1:], f"--output_dir={tmp_path / 'y'}", check=False)  # fmt: skip
-    assert missing.returncode == 2 and "cannot get its config.json" in missing.stderr
+    assert missing.returncode == 2 and "'local/absent' is not a checkpoint directory" in missing.stderr
 
     again = run_cli("condground", "pi05-start", *flags, f"--output_dir={start}", check=False)
     assert again.returncode == 2 and "exists and is not empty" in again.stderr

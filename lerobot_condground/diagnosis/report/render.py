@@ -147,12 +147,16 @@ def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
             f"--output={html_path} would overwrite {foreign[0]}, which condground report did not write; "
             "choose another --output or move that file away"
         )
+    html = render_html(doc)
     files_dir.mkdir(parents=True, exist_ok=True)
-    html_path.write_text(render_html(doc), encoding="utf-8")
+    # The manifest claims every file before any is written: a run that dies half way leaves files its
+    # rerun knows as its own, not files that block it.
+    manifest_path.write_text(json.dumps({"figures": sorted((before or set()) | set(files))}, indent=1))
+    html_path.write_text(html, encoding="utf-8")
     for name in (before or set()) - set(files):  # a rerun with fewer figures must not leave old ones behind
         (files_dir / name).unlink(missing_ok=True)
     for name, png in files.items():
         (files_dir / name).write_bytes(png)
-    manifest_path.write_text(json.dumps({"figures": sorted(files)}, indent=1))
     md_path.write_text(text, encoding="utf-8")
+    manifest_path.write_text(json.dumps({"figures": sorted(files)}, indent=1))
     return html_path, md_path
