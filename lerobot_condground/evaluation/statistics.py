@@ -124,6 +124,23 @@ def counts(df: pd.DataFrame, metric: str) -> tuple[int, int]:
     return int((_flags(df, numerator) & mask).sum()), int(mask.sum())
 
 
+def stage_funnel(df: pd.DataFrame, by: Sequence[str] = CELL) -> pd.DataFrame:
+    """Per cell, the episodes that got at least as far as each stage, over all episodes: picked, picked and
+    lifted, and placed after both (columns `stage`, `k`, `n`, `rate`, `low`, `high`)."""
+    rows = []
+    for key, cell in df.groupby(list(by), sort=True, dropna=False):
+        reached = np.ones(len(cell), bool)
+        for stage, column in (("picked", "pick"), ("lifted", "lift"), ("placed", "place")):
+            reached = reached & cell[column].fillna(False).astype(bool).to_numpy()
+            rows.append(
+                {**dict(zip(by, key, strict=True)), "stage": stage, "k": int(reached.sum()), "n": len(cell)}
+            )
+    out = pd.DataFrame(rows, columns=[*by, "stage", "k", "n"])
+    out["rate"] = out["k"] / out["n"].clip(lower=1)
+    out["low"], out["high"] = wilson_interval(out["k"], out["n"])
+    return out
+
+
 def cell_metrics(df: pd.DataFrame, by: Sequence[str] = CELL) -> pd.DataFrame:
     """One row per cell: `<m>_k`, `<m>_n`, `<m>`, `<m>_low`, `<m>_high` for every metric in METRICS,
     `episodes`, and the spread of success across training seeds (`success_seed_mean/std/min/max`,

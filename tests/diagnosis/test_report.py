@@ -312,6 +312,16 @@ def test_report_renders_in_headless_chromium(report):
                 external: imgs.filter(i => !i.src.startsWith('data:image/png;base64,')).length,
                 links: document.querySelectorAll('link, script').length,
                 paperHeader: Array.from(document.querySelectorAll('#table-1 th')).map(th => th.textContent),
+                // What a reader sees first: the first section, and what follows the title and intro.
+                firstSection: document.querySelector('h2').textContent,
+                firstBlocks: Array.from(document.querySelectorAll('h2 ~ *')).slice(0, 4).map(e => e.tagName),
+                folded: Array.from(document.querySelectorAll('table')).filter(
+                    t => t.closest('details') && !t.closest('details').open).map(t => t.id),
+                visibleFolded: document.getElementById('stage-table').checkVisibility(),
+                visibleClicked: (() => {
+                    document.querySelector('#details-stage-table summary').click();
+                    return document.getElementById('stage-table').checkVisibility();
+                })(),
                 actRow: Array.from(document.querySelectorAll('#table-1 tbody tr')).map(tr => tr.innerText),
             };
         """)
@@ -319,8 +329,13 @@ def test_report_renders_in_headless_chromium(report):
         driver.quit()
     assert state["title"] == "test report"
     assert state["rows"] == EXPECTED_ROWS
-    # 2 stage plots, 2 condition-difference plots, 2 variant-difference plots, t-SNE, attention still, probe
-    assert state["images"] == 9
+    # The report opens on its figures; every table but Table I is folded until its caption is clicked.
+    assert state["firstSection"] == "At a glance" and state["firstBlocks"][1:4] == ["FIGURE"] * 3
+    assert sorted(state["folded"]) == sorted(set(EXPECTED_ROWS) - {"table-1"})
+    assert state["visibleFolded"] is False and state["visibleClicked"] is True
+    # 2 success and 2 funnel plots at a glance, 2 stage plots, 2 condition-difference plots, 2
+    # variant-difference plots, t-SNE, attention still, probe
+    assert state["images"] == 13
     assert state["loaded"] == state["images"]
     assert state["external"] == 0 and state["links"] == 0
     assert "paper (simulation)" in state["paperHeader"]
@@ -356,7 +371,7 @@ def test_markdown_links_existing_pngs(report):
     assert md_path == html_path.with_suffix(".md") and md_path.is_file()
     text = md_path.read_text()
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
-    assert len(links) == 9
+    assert len(links) == 13
     for link in links:
         path = md_path.parent / link
         assert path.is_file() and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", link
@@ -370,8 +385,8 @@ def test_missing_inputs_leave_a_note(inputs, tmp_path):
     text = html_path.read_text()
     assert 'id="probe"' in text and 'id="table-1"' not in text and 'id="table-2"' not in text
     assert (
-        text.count('class="note"') == 8
-    )  # table I, stages, 2 difference sections, subgoals, table II, t-SNE, attention
+        text.count('class="note"') == 9
+    )  # at a glance, table I, stages, 2 difference sections, subgoals, table II, t-SNE, attention
 
 
 def test_parse_report_args_accepts_repeated_and_comma_separated_dirs():

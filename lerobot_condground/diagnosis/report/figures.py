@@ -124,3 +124,66 @@ def probe_figure(probes: list[tuple[str, dict]]) -> bytes:
     ax.legend(fontsize=7)
     ax.set_title("Prompt-swap probe (95 % Wilson intervals)", fontsize=9)
     return _png(fig)
+
+
+def success_figure(
+    task: str, metrics: pd.DataFrame, labels: list[str], conditions: list[str], paper: dict
+) -> bytes:
+    """Success per policy and condition with 95 % Wilson intervals; `paper[(label, condition)]` (in %) as
+    an open diamond of the policy's colour where the paper reports that cell."""
+    fig, (ax,) = _new_figure(min(18.0, max(6.0, _panel_width(len(conditions), len(labels)))), 3.6)
+    x = np.arange(len(conditions))
+    for i, (offset, label) in enumerate(zip(_series_offsets(len(labels)), labels, strict=False)):
+        cell = metrics[metrics["policy_label"] == label].set_index("condition").reindex(conditions)
+        y = cell["success"].to_numpy(float)
+        err = np.vstack([y - cell["success_low"].to_numpy(float), cell["success_high"].to_numpy(float) - y])
+        ax.errorbar(x + offset, 100 * y, yerr=100 * _nonnegative(err), fmt="o", ms=4, capsize=2, lw=1,
+                    color=f"C{i}", label=label)  # fmt: skip
+        reported = [(j, paper[(label, c)]) for j, c in enumerate(conditions) if (label, c) in paper]
+        if reported:
+            j, value = zip(*reported, strict=True)
+            ax.plot(np.array(j) + offset, value, "D", mfc="none", mec=f"C{i}", ms=7, mew=1.2)
+    if paper:
+        ax.plot([], [], "D", mfc="none", mec="0.3", ms=7, label="paper (same colour)")
+    ax.set_ylim(-5, 105)
+    ax.set_ylabel("success (%)", fontsize=8)
+    ax.set_xticks(x, conditions, rotation=60, ha="right", fontsize=7)
+    ax.grid(axis="y", alpha=0.3)
+    fig.legend(loc="outside lower center", ncol=min(4, max(1, len(labels) + bool(paper))), fontsize=8)
+    ax.set_title(f"{task_title(task)}: success per policy and condition (95 % Wilson intervals)", fontsize=9)
+    return _png(fig)
+
+
+FUNNEL_STAGES = ("picked", "lifted", "placed")
+
+
+def funnel_figure(task: str, funnel: pd.DataFrame, labels: list[str], conditions: list[str]) -> bytes:
+    """Per policy, the share of all episodes that got at least as far as each stage, per condition: where
+    the bars drop is the stage that fails. `funnel` has policy_label, condition, stage, rate, low, high."""
+    cols = min(2, len(labels))
+    rows = math.ceil(len(labels) / cols)
+    width = min(18.0, cols * max(4.5, 0.9 + 0.45 * len(conditions)))
+    fig, axes = _new_figure(width, 0.8 + 2.5 * rows, rows, cols)
+    x = np.arange(len(conditions))
+    for ax, label in zip(axes, labels, strict=False):
+        for i, stage in enumerate(FUNNEL_STAGES):
+            cell = funnel[(funnel.policy_label == label) & (funnel.stage == stage)]
+            cell = cell.set_index("condition").reindex(conditions)
+            y = cell["rate"].to_numpy(float)
+            err = np.vstack([y - cell["low"].to_numpy(float), cell["high"].to_numpy(float) - y])
+            ax.bar(x + (i - 1) * 0.27, 100 * y, width=0.27, color=f"C{i}", label=stage)
+            ax.errorbar(x + (i - 1) * 0.27, 100 * y, yerr=100 * _nonnegative(err), fmt="none", capsize=1.5,
+                        ecolor="0.2", lw=0.8)  # fmt: skip
+        ax.set_title(label, fontsize=9)
+        ax.set_ylim(0, 105)
+        ax.set_xticks(x, conditions, rotation=60, ha="right", fontsize=7)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.grid(axis="y", alpha=0.3)
+    for ax in axes[len(labels) :]:
+        ax.set_visible(False)
+    handles, names = axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="outside lower center", ncol=3, fontsize=8)
+    fig.suptitle(
+        f"{task_title(task)}: episodes reaching each stage (% of all, 95 % Wilson intervals)", fontsize=10
+    )
+    return _png(fig)

@@ -28,12 +28,13 @@ from lerobot_condground.evaluation.statistics import (
     SUBGOAL_TITLES,
     cell_metrics,
     condition_differences,
+    stage_funnel,
     subgoal_rates,
     variant_differences,
 )
 
 from .config import ReportConfig
-from .figures import difference_figure, probe_figure, stage_figure
+from .figures import difference_figure, funnel_figure, probe_figure, stage_figure, success_figure
 from .formatting import TASK_SHORT, fmt_diff, fmt_number, fmt_rate, metric_cell, pct, seed_spread, task_title
 from .inputs import COUNTERBALANCED, Inputs
 
@@ -63,6 +64,7 @@ class Table:
     columns: list[str]
     rows: list[list[str]]
     groups: list[tuple[str, int]] | None = None  # header groups spanning consecutive columns
+    open: bool = False  # shown unfolded in the HTML; the full tables follow the figures folded
     kind: ClassVar[str] = "table"
 
 
@@ -150,6 +152,57 @@ def pick_baseline(labels) -> str:
 # ---------------------------------------------------------------------------------------------- sections
 
 
+def _paper_success(method: str | None, task: str, condition: str) -> float | None:
+    """The paper's success (%) for this cell: Table I under full mixed distractors, standard ACT's clean."""
+    if condition == "full_mixed":
+        return paper.TABLE1.get(method, {}).get(task)
+    quoted = paper.STAGES.get((task, condition), "") if method == "standard" else ""
+    return float(quoted.split()[1]) if quoted.startswith("success ") else None
+
+
+def _section_overview(results: pd.DataFrame, methods, labels, variant_figures: list[Figure]) -> Section:
+    """The pictures a reader looks at first; the tables they summarize follow in the later sections."""
+    section = Section("At a glance")
+    if results.empty:
+        return section.note(
+            "No sweep among the inputs: `condground sweep` writes the results these figures show."
+        )
+    section.blocks.append(
+        Para(
+            "Success per policy and condition, the stage where episodes stop, and the paired differences "
+            "between variants; the full tables follow below (folded in the HTML: click a caption)."
+        )
+    )
+    metrics = cell_metrics(results, by=CELL)
+    funnel = stage_funnel(results)
+    for task in _task_order(results["task"]):
+        tm = metrics[metrics.task == task]
+        task_labels = [lb for lb in labels if lb in set(tm.policy_label)]
+        conditions = _condition_order(tm.condition)
+        reported = {
+            (label, c): value
+            for label in task_labels
+            for c in conditions
+            if (value := _paper_success(methods.get(label), task, c)) is not None
+        }
+        section.blocks += [
+            Figure(
+                f"success-{task}",
+                success_figure(task, tm, task_labels, conditions, reported),
+                f"{task_title(task)}: success per policy and condition, 95 % Wilson intervals; open diamonds: "
+                "the paper's value for the policy's method where it reports one.",
+            ),
+            Figure(
+                f"funnel-{task}",
+                funnel_figure(task, funnel[funnel.task == task], task_labels, conditions),
+                f"{task_title(task)}: share of all episodes that picked, picked and lifted, and placed, per "
+                "condition: the stage where the bars drop is where the policy fails.",
+            ),
+            *[f for f in variant_figures if f.name == f"variant-differences-{task}"],
+        ]
+    return section
+
+
 def _section_table1(results: pd.DataFrame, methods, labels) -> Section:
     section = Section("Table I: end-to-end success under full mixed distractors")
     full = results[results["condition"] == "full_mixed"] if len(results) else results
@@ -193,6 +246,7 @@ def _section_table1(results: pd.DataFrame, methods, labels) -> Section:
             ],
             rows,
             groups=[("", 1), ("this report", len(tasks)), ("paper (simulation)", 1 + len(paper_tasks))],
+            open=True,
         ),
     ]
     return section
@@ -828,14 +882,21 @@ def build_document(inputs: Inputs, cfg: ReportConfig) -> Document:
                 "checkpoints. Intervals are 95 %."
             )
         )
+    variants = _section_variant_differences(results, labels)
+    # Its figures lead the report; its table stays with the other tables.
+    variant_figures = [b for b in variants.blocks if isinstance(b, Figure)]
+    variants.blocks = [b for b in variants.blocks if not isinstance(b, Figure)]
+    if variant_figures:
+        variants.blocks.append(Para("The plots of these differences are in 'At a glance' above."))
     document = Document(
         cfg.title,
         intro,
         [
+            _section_overview(results, methods, labels, variant_figures),
             _section_table1(results, methods, labels),
             _section_stages(results, methods, labels),
             _section_condition_differences(results, labels),
-            _section_variant_differences(results, labels),
+            variants,
             _section_subgoals(inputs.subgoals),
             _section_table2(inputs.diagnostics),
             _section_tsne(inputs.diagnostics),
