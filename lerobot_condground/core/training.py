@@ -1,6 +1,6 @@
 """The training configuration that learns on a 2-core CPU, as `lerobot-train` flags.
 
-Measured in `docs/learning-curve/` (README, "Learning from scratch on this CPU"): a quarter-width
+Measured in `docs/learning-curve/` (docs/measurements.md, "Learning from scratch on this CPU"): a quarter-width
 ResNet-18 with batch norm trained from scratch (ImageNet weights cannot be downloaded everywhere,
 and LeRobot's frozen batch norm is an identity without them), a small transformer (width 128, two
 encoder layers), no CVAE (the demonstrations are scripted, one mode per state), 96x128 frames.

@@ -1,11 +1,12 @@
 """`condground view`: one episode in rerun, with the labels this project adds.
 
 `lerobot-dataset-viz` shows a LeRobotDataset's cameras, state and action; it cannot show what makes our
-datasets ours. This logs, on the `frame_index` timeline: every camera as an image, every segmentation as a
-`SegmentationImage` under an annotation context that names and colours the labels, the phase as a scalar,
-the prompt crops as images, state and action per joint. From the outputs of `condground attention`: its
-overlay video, the supervised head's attention map, the expert's stage, the predicted phase and the
-attention mass on each entity. Writes `--output=FILE.rrd`, or spawns a viewer when no output is given.
+datasets ours. This logs, on the `frame_index` timeline:
+every camera as an image with its segmentation over it (a `SegmentationImage` under an annotation context
+that names and colours the labels), the phase as a scalar, the prompt crops as images, state and action
+per joint, laid out by a default blueprint. From the outputs of `condground attention`: its overlay video,
+the supervised head's attention map, the expert's stage, the predicted phase and the attention mass on
+each entity. Writes `--output=FILE.rrd`, or spawns a viewer when no output is given.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from tqdm import tqdm
 from lerobot_condground.core.configs import DatasetRefConfig
 from lerobot_condground.core.labels import (
     OBS_PHASE,
+    OBS_SEGMENTATION,
+    OBS_SEGMENTATION_WRIST,
     PNG_LABEL_KEYS,
     SYNTHETIC_DISTRACTOR,
     TARGET_OBJECT,
@@ -28,7 +31,7 @@ from lerobot_condground.core.labels import (
 
 # Label ids of a segmentation map (core/labels.py) and the colours the viewer gives them.
 LABELS = [
-    (0, "background and robot", (0, 0, 0)),
+    (0, "background and robot", (0, 0, 0, 0)),  # transparent: the camera shows through
     (TARGET_OBJECT, "target object", (230, 57, 70)),
     (TARGET_RECEPTACLE, "target receptacle", (29, 120, 230)),
     *[
@@ -39,6 +42,10 @@ LABELS = [
     ],  # fmt: skip
     (SYNTHETIC_DISTRACTOR, "pasted distractor", (255, 0, 255)),
 ]
+
+
+# Each segmentation is logged under its camera, so the camera's view overlays it.
+SEGMENTATION_CAMERA = {OBS_SEGMENTATION: "top", OBS_SEGMENTATION_WRIST: "wrist"}
 
 
 @dataclass
@@ -52,16 +59,37 @@ class ViewConfig:
     progress: bool = True
 
 
-def _start(name: str, output: str | None):
+def _start(name: str, output: str | None, blueprint=None):
     import rerun as rr
 
     rr.init(name, spawn=False)
     if output is None:
-        rr.spawn()
+        rr.spawn(default_blueprint=blueprint)
     else:
         Path(output).parent.mkdir(parents=True, exist_ok=True)
-        rr.save(output)
+        rr.save(output, default_blueprint=blueprint)
     return rr
+
+
+def _dataset_blueprint(cameras: list[str], prompts: list[str], phase: bool):
+    """Cameras with their segmentation overlaid and the prompt crops on the left; state, action and phase
+    as one plot each on the right."""
+    import rerun.blueprint as rrb
+
+    images = [rrb.Spatial2DView(origin=f"cameras/{c}", name=c) for c in cameras]
+    crops = [rrb.Spatial2DView(origin=f"prompts/{p}", name=f"prompt: {p}") for p in prompts]
+    plots = [
+        rrb.TimeSeriesView(origin=o, name=o)
+        for o in ("state", "action", *(["labels/phase"] if phase else []))
+    ]
+    left = (
+        rrb.Vertical(rrb.Horizontal(*images), rrb.Horizontal(*crops), row_shares=[3, 1])
+        if crops
+        else rrb.Horizontal(*images)
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[3, 2]), collapse_panels=True
+    )
 
 
 def _rgb(frame) -> np.ndarray:
@@ -100,8 +128,13 @@ def view_dataset(cfg: ViewConfig) -> None:
             "and action"
         )
     dataset = LeRobotDataset(repo_id, root=root, episodes=[cfg.episode])
-    rr = _start(f"{repo_id}/episode_{cfg.episode}", cfg.output)
-    rr.log("labels", rr.AnnotationContext(LABELS), static=True)
+    cameras = [key.removeprefix("observation.images.") for key in meta.camera_keys]
+    prompts = [
+        key.removeprefix("observation.prompt.") for key in labels if key.startswith("observation.prompt.")
+    ]
+    blueprint = _dataset_blueprint(cameras, prompts, OBS_PHASE in labels)
+    rr = _start(f"{repo_id}/episode_{cfg.episode}", cfg.output, blueprint)
+    rr.log("cameras", rr.AnnotationContext(LABELS), static=True)
     names = {key: (meta.features[key].get("names") or None) for key in ("observation.state", "action")}
     for i in tqdm(range(len(dataset)), desc=f"episode {cfg.episode}", unit="frame", disable=not cfg.progress):
         item = dataset[i]
@@ -116,7 +149,10 @@ def view_dataset(cfg: ViewConfig) -> None:
                 continue
             image = decode_png(value if isinstance(value, str) else value[0])
             if image.ndim == 2:  # a label map
-                rr.log(f"labels/{key.removeprefix('observation.')}", rr.SegmentationImage(image))
+                rr.log(
+                    f"cameras/{SEGMENTATION_CAMERA[key]}/segmentation",
+                    rr.SegmentationImage(image, opacity=0.6),
+                )
             else:  # a prompt crop
                 rr.log(f"prompts/{key.removeprefix('observation.prompt.')}", rr.Image(image))
         for key in ("observation.state", "action"):

@@ -2,7 +2,7 @@
 
 A stage is one command (`condground record`, the stock `lerobot-train`, `condground sweep`, `diagnose`,
 `probe`, `report`) writing into its own directory; it runs when the stages it reads are done. Estimates
-come from rates measured on the 2-core development machine (README, "Measured"), so they say what a run
+come from rates measured on the 2-core development machine (docs/measurements.md), so they say what a run
 costs there and scale with this machine's cores.
 """
 
@@ -84,7 +84,7 @@ TRAIN_SAMPLES_PER_CORE_S = {
     "cpu": {"standard": 39.0, "augmentation": 25.0, "augmentation_attention": 25.0, "full": 26.0},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
 }
-# Two torch threads trained the CPU configuration at 60 samples/s against 41 on one (quickstart, README):
+# Two torch threads trained the CPU configuration at 60 samples/s against 41 on one (quickstart, docs/measurements.md):
 # a run on t threads goes t**0.55 times as fast.
 THREAD_SCALING = 0.55
 # Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): the cpu reproduction's sweeps at

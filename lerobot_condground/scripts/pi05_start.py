@@ -25,12 +25,23 @@ class DatasetRef:
 
 
 @dataclass
+class PolicySource:
+    # The source: a pi05 checkpoint, a hub id (lerobot/pi05_base) or a local directory. Every other
+    # --policy.<field>=value sets that field of pi05_grounded (variant, tokenizer_name, grounding_layers, ...).
+    path: str = ""
+
+
+@dataclass
 class Config:
     output_dir: Path = Path("outputs/pi05_start")
     dataset: DatasetRef = field(default_factory=DatasetRef)
-    # Filled by `parse`: the source checkpoint and the `--policy.*` overrides.
-    source: str = ""
+    policy: PolicySource = field(default_factory=PolicySource)
+    # Filled by `parse`: the `--policy.*` overrides, set on pi05_grounded's configuration.
     policy_overrides: list[str] = field(default_factory=list)
+
+    @property
+    def source(self) -> str:
+        return self.policy.path
 
 
 def parse(args: list[str]) -> Config:
@@ -40,8 +51,11 @@ def parse(args: list[str]) -> Config:
         for a in args
         if a.startswith("--policy.") and a not in (f"{PATH_FLAG}{s}" for s in sources)
     ]
+    # The overrides are pi05_grounded's fields, which draccus would refuse as fields of PolicySource.
     cfg = draccus.parse(
-        Config, args=[a for a in args if not a.startswith("--policy.")], prog="condground pi05-start"
+        Config,
+        args=[a for a in args if not a.startswith("--policy.")],
+        prog="condground pi05-start",
     )
     if not sources or not sources[-1]:
         raise ValueError(
@@ -51,7 +65,7 @@ def parse(args: list[str]) -> Config:
         raise ValueError(
             "--dataset.repo_id is required: the LeRobotDataset to fine-tune on (its features and statistics)"
         )
-    cfg.source, cfg.policy_overrides = sources[-1], overrides
+    cfg.policy.path, cfg.policy_overrides = sources[-1], overrides
     return cfg
 
 

@@ -47,8 +47,8 @@ def test_condground_view_logs_the_label_layers(recorded_dataset, tmp_path):
     )  # fmt: skip
     found = entities(rrd, tmp_path)
     assert found["/cameras/top"] == {"Image"}
-    assert found["/labels/segmentation"] == {"SegmentationImage"}
-    assert found["/labels"] == {"AnnotationContext"}  # names and colours of the label ids, for every map
+    assert found["/cameras/top/segmentation"] == {"SegmentationImage"}  # over its camera
+    assert found["/cameras"] == {"AnnotationContext"}  # names and colours of the label ids, for every map
     assert found["/labels/phase"] == {"Scalars"}
     assert found["/prompts/object"] == found["/prompts/receptacle"] == {"Image"}
     assert {"/state/gripper.pos", "/action/shoulder_pan.pos"} <= set(found)
