@@ -17,13 +17,15 @@ training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
 seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
 `condground failures` classifies each failed rollout of each run's last checkpoint on the held-out layouts
-(`<csv stem>_failures.csv`: counts per cause, grasp offsets at closing).
+(`<csv stem>_failures.csv`: counts per cause, grasp offsets at closing). With --curve=ARM:NAME, every
+checkpoint of that arm's runs on the held-out layouts: the learning curve `<csv dir>/<task>_<NAME>.csv`.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -115,7 +117,11 @@ def evaluate_all(args, arms: dict[str, list[str]]) -> None:
             out = args.out / "eval_train" / run_dir(args, arm, seed).name / f"{args.steps:06d}"
             if not (out / "results.parquet").exists():
                 todo.append((checkpoint(run_dir(args, arm, seed), args.steps), out))
-    # One sweep per checkpoint (resumable one by one), --jobs of them at once on one worker each.
+    sweep_all(args, todo)
+
+
+def sweep_all(args, todo: list[tuple[Path, Path]]) -> None:
+    """One sweep per (checkpoint, output folder), resumable one by one, --jobs at once on one worker each."""
     commands = []
     for ckpt, out in todo:
         own_layouts = out.parts[-3] == "eval_train"
@@ -127,6 +133,65 @@ def evaluate_all(args, arms: dict[str, list[str]]) -> None:
             f"--output_dir={out}", "--progress=false",
         ])  # fmt: skip
     run_all(commands, args.jobs)
+
+
+def elapsed_minutes(log: Path, step: int, total: int) -> float:
+    """Wall-clock minutes of training at `step`, from the progress bar `condground train` logs."""
+    found = re.search(rf" {step}/{total} \[(\d+(?::\d+){{1,2}})<", log.read_text(errors="replace"))
+    if found is None:
+        raise SystemExit(f"{log}: no progress line at step {step}/{total}")
+    seconds = sum(int(v) * 60**i for i, v in enumerate(reversed(found[1].split(":"))))
+    return seconds / 60
+
+
+def curves(args, arms: dict[str, list[str]]) -> None:
+    """Every checkpoint of the --curve arms on the held-out layouts: `<csv dir>/<task>_<name>.csv`
+    (minutes,steps,samples,success,n,ci_low,ci_high,seed) and a plot beside it."""
+    named = dict(spec.split(":", 1) for spec in args.curve)
+    unknown = set(named) - set(arms)
+    if unknown:
+        raise SystemExit(f"--curve names arms {sorted(unknown)}; arms: {sorted(arms)}")
+    steps = list(range(args.every, args.steps + 1, args.every))
+    todo = [
+        (checkpoint(run_dir(args, arm, seed), step), args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}")
+        for arm in named for seed in args.seeds for step in steps
+    ]  # fmt: skip
+    sweep_all(args, [(ckpt, out) for ckpt, out in todo if not (out / "results.parquet").exists()])
+    for arm, name in named.items():
+        rows = []
+        for seed in args.seeds:
+            log = run_dir(args, arm, seed).resolve().with_suffix(".log")  # a linked run's log is beside it
+            for step in steps:
+                frame = outcomes(args, arm, seed, step)
+                r = rate(int(frame["success"].sum()), len(frame))
+                rows.append(
+                    {"minutes": elapsed_minutes(log, step, args.steps), "steps": step,
+                     "samples": step * CPU_BATCH_SIZE, "success": r["rate"], "n": r["n"], "ci_low": r["low"],
+                     "ci_high": r["high"], "seed": seed}
+                )  # fmt: skip
+        table = pd.DataFrame(rows)
+        path = args.csv.parent / f"{args.task}_{name}.csv"
+        table.to_csv(path, index=False, float_format="%.4f")
+        plot_curve(table, path.with_suffix(".png"), f"{args.task} {name}")
+        print(f"{path}:\n{table.to_string(index=False)}")
+
+
+def plot_curve(table: pd.DataFrame, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for j, (seed, run) in enumerate(table.groupby("seed")):
+        ax.errorbar(run["minutes"], run["success"] * 100,
+                    yerr=[(run["success"] - run["ci_low"]) * 100, (run["ci_high"] - run["success"]) * 100],
+                    marker="os^v"[j % 4], capsize=2, label=f"seed {seed}")  # fmt: skip
+    ax.set(xlabel="wall-clock minutes of training (one thread, machine shared: see README)",
+           ylabel="held-out clean success (%)", title=title, ylim=(-5, 105))  # fmt: skip
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def run_all(commands: list[list[str]], jobs: int) -> None:
@@ -345,7 +410,10 @@ def main() -> None:
     parser.add_argument("--heldout", type=Path, help="a held-out recording of the task (the fit stage)")
     parser.add_argument("--fit_episodes", default="0:20", help="training episodes the fit stage reads")
     parser.add_argument(
-        "--stage", choices=("all", "train", "evaluate", "analyse", "fit", "failures"), default="all"
+        "--stage", choices=("all", "train", "evaluate", "analyse", "fit", "failures", "curve"), default="all"
+    )
+    parser.add_argument(
+        "--curve", action="append", default=[], help="ARM:NAME: the curve stage writes <task>_<NAME>.csv"
     )
     args = parser.parse_args()
     if not args.lever:
@@ -363,6 +431,8 @@ def main() -> None:
         fit_all(args, arms)
     if args.stage in ("all", "failures"):
         failures_all(args, arms)
+    if args.stage in ("all", "curve") and args.curve:
+        curves(args, arms)
 
 
 if __name__ == "__main__":
