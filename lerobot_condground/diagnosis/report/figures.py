@@ -69,16 +69,28 @@ def stage_figure(task: str, metrics: pd.DataFrame, labels: list[str], conditions
                 lw=1,
                 label=label,
             )
-        ax.set_title(f"{METRIC_TITLES[metric]} (%)", fontsize=9)
-        ax.set_ylim(-5, 105)
-        ax.set_xticks(x, conditions, rotation=60, ha="right", fontsize=7)
-        ax.tick_params(axis="y", labelsize=7)
-        ax.grid(axis="y", alpha=0.3)
-    for ax in axes[len(panels) :]:
+        _condition_axis(ax, conditions, f"{METRIC_TITLES[metric]} (%)", (-5, 105))
+    return _panels_done(
+        fig, axes, len(panels), min(4, max(1, len(labels))),
+        f"{task_title(task)}: stage metrics per condition (95 % Wilson intervals)",
+    )  # fmt: skip
+
+
+def _condition_axis(ax, conditions: list[str], title: str, ylim: tuple[float, float]) -> None:
+    ax.set_title(title, fontsize=9)
+    ax.set_ylim(*ylim)
+    ax.set_xticks(np.arange(len(conditions)), conditions, rotation=60, ha="right", fontsize=7)
+    ax.tick_params(axis="y", labelsize=7)
+    ax.grid(axis="y", alpha=0.3)
+
+
+def _panels_done(fig, axes, used: int, ncol: int, title: str) -> bytes:
+    """Hides the unused panels, puts the first panel's legend under all and the title over all."""
+    for ax in axes[used:]:
         ax.set_visible(False)
     handles, names = axes[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="outside lower center", ncol=min(4, max(1, len(labels))), fontsize=8)
-    fig.suptitle(f"{task_title(task)}: stage metrics per condition (95 % Wilson intervals)", fontsize=10)
+    fig.legend(handles, names, loc="outside lower center", ncol=ncol, fontsize=8)
+    fig.suptitle(title, fontsize=10)
     return _png(fig)
 
 
@@ -174,16 +186,8 @@ def funnel_figure(task: str, funnel: pd.DataFrame, labels: list[str], conditions
             ax.bar(x + (i - 1) * 0.27, 100 * y, width=0.27, color=f"C{i}", label=stage)
             ax.errorbar(x + (i - 1) * 0.27, 100 * y, yerr=100 * _nonnegative(err), fmt="none", capsize=1.5,
                         ecolor="0.2", lw=0.8)  # fmt: skip
-        ax.set_title(label, fontsize=9)
-        ax.set_ylim(0, 105)
-        ax.set_xticks(x, conditions, rotation=60, ha="right", fontsize=7)
-        ax.tick_params(axis="y", labelsize=7)
-        ax.grid(axis="y", alpha=0.3)
-    for ax in axes[len(labels) :]:
-        ax.set_visible(False)
-    handles, names = axes[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="outside lower center", ncol=3, fontsize=8)
-    fig.suptitle(
-        f"{task_title(task)}: episodes reaching each stage (% of all, 95 % Wilson intervals)", fontsize=10
-    )
-    return _png(fig)
+        _condition_axis(ax, conditions, label, (0, 105))
+    return _panels_done(
+        fig, axes, len(labels), 3,
+        f"{task_title(task)}: episodes reaching each stage (% of all, 95 % Wilson intervals)",
+    )  # fmt: skip
