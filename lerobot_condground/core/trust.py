@@ -130,7 +130,9 @@ def within(root: Path, path: Path) -> bool:
     target = Path(os.path.normpath(base / path))
     if not target.is_relative_to(base):
         return False
-    return _hub_snapshot(base) or target.resolve().is_relative_to(base.resolve())
+    # A hub snapshot's files link into its repo's blobs; nothing may link further out.
+    allowed = base.parent.parent if _hub_snapshot(base) else base
+    return target.resolve().is_relative_to(allowed.resolve())
 
 
 def inside(root: Path, value: str) -> bool:

@@ -12,7 +12,7 @@ from lerobot.processor.pipeline import ProcessorStepRegistry
 
 from helpers import run_cli
 from lerobot_condground.cli import main
-from lerobot_condground.core.trust import DATA_STEPS, LOADING_STEPS, OPT_IN, REFUSED_STEPS
+from lerobot_condground.core.trust import DATA_STEPS, LOADING_STEPS, OPT_IN, REFUSED_STEPS, check_state_file
 from lerobot_condground.evaluation.checkpoints import check_processor_steps, register_plugins
 
 PREPROCESSOR = "policy_preprocessor.json"
@@ -236,3 +236,24 @@ def test_a_policy_type_that_loads_what_its_config_names_is_refused(act_checkpoin
         )
         assert OPT_IN in last and not (tmp_path / command).exists()
     assert not marker.exists()
+
+
+def test_a_hub_snapshot_may_link_into_its_blobs_and_no_further(tmp_path):
+    repo = tmp_path / "models--someone--policy"
+    snapshot = repo / "snapshots" / ("0" * 40)
+    snapshot.mkdir(parents=True)
+    (repo / "blobs").mkdir()
+    (repo / "blobs" / "abc").write_bytes(b"state")
+    (tmp_path / "secret").write_bytes(b"not the checkpoint's")
+    (snapshot / "stats.safetensors").symlink_to("../../blobs/abc")  # as huggingface_hub leaves a download
+    (snapshot / "leak.safetensors").symlink_to(tmp_path / "secret")
+    processor = snapshot / "policy_preprocessor.json"
+    check_state_file(processor, 0, {"state_file": "stats.safetensors"})
+    for name in ("leak.safetensors", "../../blobs/abc"):
+        with pytest.raises(PermissionError, match="is not a file inside the checkpoint's folder"):
+            check_state_file(processor, 0, {"state_file": name})
+    # The same links in a plain folder: its files must stay in it.
+    plain = tmp_path / "plain"
+    shutil.copytree(snapshot, plain, symlinks=True)
+    with pytest.raises(PermissionError):
+        check_state_file(plain / "policy_preprocessor.json", 0, {"state_file": "stats.safetensors"})
