@@ -12,6 +12,7 @@ import contextlib
 import importlib
 import io
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -115,10 +116,22 @@ def _message(err: BaseException) -> str:
     return " ".join(str(err).split())
 
 
+# YAML 1.1, which draccus reads each value with, takes `1:2` for the base-60 number 62: a range such as
+# --fit.episodes=1:2 would silently name another episode. No flag of ours is meant in base 60.
+_SEXAGESIMAL = re.compile(r"[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?")
+
+
+def _literal(arg: str) -> str:
+    """`--key=value` with a value YAML would read as a base-60 number, quoted so that it stays text."""
+    key, sep, value = arg.partition("=")
+    return f"{key}={value!r}" if sep and key.startswith("--") and _SEXAGESIMAL.fullmatch(value) else arg
+
+
 def _parse(script, args: list[str], prog: str):
     """The command's config. argparse answers an unknown flag with the whole usage (every flag) and exits:
     only its last line, the error, is kept, with where to find the flags."""
     captured = io.StringIO()
+    args = [_literal(arg) for arg in args]
     try:
         with contextlib.redirect_stderr(captured):
             parse = getattr(script, "parse", None)

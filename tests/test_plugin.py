@@ -261,3 +261,22 @@ def test_a_group_flag_keeps_the_command_default_of_the_group():
         draccus.parse(AttentionConfig, args=["--env.task=PickPlaceFixedBin-v0"]).env.condition == "full_mixed"
     )
     assert draccus.parse(DiagnoseConfig, args=["--env.episode_length=5"]).env.condition == "clean"
+
+
+def test_a_range_flag_stays_text_where_yaml_would_read_base_60():
+    """draccus reads values as YAML 1.1, where `1:2` is the number 62: --fit.episodes=1:2 must stay a range."""
+    import importlib
+
+    from lerobot_condground.cli import _parse
+
+    fit = importlib.import_module("lerobot_condground.scripts.fit")
+    for text in ("1:2", "5:9", "0:20", "3,5"):
+        assert _parse(fit, [f"--fit.episodes={text}"], "condground fit").fit.episodes == text
+    import draccus
+
+    with pytest.raises(draccus.utils.ParsingError, match="n_episodes"):
+        _parse(
+            importlib.import_module("lerobot_condground.scripts.sweep"),
+            ["--eval.n_episodes=1:2"],
+            "condground sweep",
+        )

@@ -111,12 +111,20 @@ def pinned_folder(source: str) -> Path:
     from huggingface_hub import snapshot_download
 
     try:
-        return Path(snapshot_download(source))
+        snapshot = Path(snapshot_download(source))
     except Exception as err:  # invalid id, not cached while offline, no such repo, network
         raise FileNotFoundError(
             f"{source!r} is not a checkpoint directory and cannot be fetched as a hub id "
             f"({type(err).__name__}: {str(err).splitlines()[0]})"
         ) from None
+    # huggingface_hub links a snapshot's files to its repo's blobs; a cache edited to link elsewhere is refused.
+    for path in snapshot.rglob("*"):
+        if not within(snapshot, path.relative_to(snapshot)):
+            raise PermissionError(
+                f"{path} (in the hub cache's snapshot of {source!r}) links outside the repo's blobs "
+                f"to {path.resolve()}; the cache was edited: remove {snapshot.parent.parent} and download again"
+            )
+    return snapshot
 
 
 def _hub_snapshot(root: Path) -> bool:
@@ -130,9 +138,13 @@ def within(root: Path, path: Path) -> bool:
     target = Path(os.path.normpath(base / path))
     if not target.is_relative_to(base):
         return False
-    # A hub snapshot's files link into its repo's blobs; nothing may link further out.
-    allowed = base.parent.parent if _hub_snapshot(base) else base
-    return target.resolve().is_relative_to(allowed.resolve())
+    resolved = target.resolve()
+    # A hub snapshot's files link into its repo's blobs; nothing may link anywhere else.
+    if _hub_snapshot(base):
+        return resolved.is_relative_to(base.resolve()) or resolved.is_relative_to(
+            (base.parent.parent / "blobs").resolve()
+        )
+    return resolved.is_relative_to(base.resolve())
 
 
 def inside(root: Path, value: str) -> bool:

@@ -14,6 +14,7 @@ since the last checkpoint (by default only the one in flight); rerunning resumes
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import logging
 import os
@@ -207,7 +208,13 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         # LeRobot would encode them into the next episode's video along with its own.
         dataset.clear_episode_buffer(delete_images=True)
         return dataset, previous
-    if root.is_dir() and not any(root.iterdir()):
+    if root.is_dir():
+        found = sorted(p.name for p in root.iterdir())
+        if found:
+            raise FileExistsError(
+                f"--dataset.root={root} holds files but no dataset ({', '.join(found[:5])}); allowed: a new or "
+                "empty folder, or a dataset recorded with the same settings to resume"
+            )
         root.rmdir()  # LeRobot creates the folder itself and refuses an existing one, even empty
     # Not LeRobot's streaming encoder: when its queue is full (a busy CPU, our burst of add_frame calls)
     # it drops frames with only a warning, and the video ends up shorter than the episode.
@@ -223,30 +230,46 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
     return dataset, {}
 
 
+# What LeRobot and the recorder write into a dataset before its first episode is saved, or while saving it.
+EMPTY_RECORDING_FILES = (
+    RECORD_FILE, "meta/info.json", "meta/stats.json", "meta/tasks.parquet", "meta/episodes/chunk-*/file-*.parquet",
+    "data/chunk-*/file-*.parquet", "videos/*/chunk-*/file-*.mp4", "images/*/episode-*/frame-*.png",
+)  # fmt: skip
+
+
+def _ours(relative: Path) -> bool:
+    return any(
+        len(relative.parts) == len(pattern.split("/"))
+        and all(
+            fnmatch.fnmatchcase(part, glob)
+            for part, glob in zip(relative.parts, pattern.split("/"), strict=True)
+        )
+        for pattern in EMPTY_RECORDING_FILES
+    )
+
+
 def _remove_empty_recording(root: Path) -> None:
     """A recording of ours that saved no episode pins nothing: a failed or stopped first run must not refuse
-    the corrected rerun. Removes only what the recorder writes; anything else in the folder is kept and
-    refused."""
-    owned = [
-        root / RECORD_FILE,
-        *(root / "meta" / name for name in ("info.json", "stats.json", "tasks.parquet")),
-    ]
-    # What a run killed while it saved its first episode leaves: frames, a data or video file, episode metadata.
-    for folder in ("images", "data", "videos", "meta/episodes"):
-        owned += [path for path in (root / folder).rglob("*") if path.is_file()]
-    for path in owned:
-        path.unlink(missing_ok=True)
-    for folder in sorted(
-        (p for p in root.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True
-    ):
-        if not any(folder.iterdir()):
-            folder.rmdir()
-    left = sorted(str(p.relative_to(root)) for p in root.iterdir())
-    if left:
+    the corrected rerun. Removes it only when every file in the folder is one the recorder writes and
+    nothing in it is a link; otherwise refuses and removes nothing."""
+    entries = [
+        Path(top) / name for top, dirs, files in os.walk(root) for name in (*dirs, *files)
+    ]  # no links followed
+    strangers = sorted(
+        str(p.relative_to(root)) + (" (a link)" if p.is_symlink() else "")
+        for p in entries
+        if p.is_symlink() or (p.is_file() and not _ours(p.relative_to(root)))
+    )
+    if strangers:
         raise FileExistsError(
-            f"--dataset.root={root} holds an empty recording and files the recorder did not write ({left[:5]}); "
-            "choose another --dataset.root"
+            f"--dataset.root={root} holds an empty recording and files the recorder did not write "
+            f"({', '.join(strangers[:5])}); nothing was removed: move them away or choose another --dataset.root"
         )
+    for path in entries:
+        if path.is_file():
+            path.unlink()
+    for path in sorted((p for p in entries if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        path.rmdir()
     root.rmdir()
 
 

@@ -208,8 +208,13 @@ def view_attention(cfg: ViewConfig) -> None:
 
 
 def run_view(cfg: ViewConfig) -> None:
-    if cfg.output is not None and not cfg.output.endswith(".rrd"):
-        raise ValueError(f"--output={cfg.output!r} is not allowed; allowed: a file name ending in .rrd")
+    if cfg.output is not None:
+        output = Path(cfg.output)
+        if not cfg.output.endswith(".rrd") or output.is_dir():
+            raise ValueError(f"--output={cfg.output!r} is not allowed; allowed: a file name ending in .rrd")
+        clash = next((p for p in output.parents if p.exists() and not p.is_dir()), None)
+        if clash is not None:
+            raise ValueError(f"--output={cfg.output!r}: {clash} is a file, not a folder")
     if cfg.attention_dir is not None:
         view_attention(cfg)
     else:

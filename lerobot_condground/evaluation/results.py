@@ -104,6 +104,26 @@ def read_metadata(path: Path) -> dict:
     return json.loads(metadata[METADATA_KEY]) if METADATA_KEY in metadata else {}
 
 
+def refuse_contradictions(path: Path, frame: pd.DataFrame) -> None:
+    """Pick-and-place rows whose outcome columns contradict each other (success without the placement, a
+    placement without the lift, a stage that is not the count of stages reached) were edited, not measured:
+    refused, naming the file and the first such episode."""
+    from lerobot_condground.core.conditions import ROUTING_TASK
+
+    rows = frame[frame["task"] != ROUTING_TASK]
+    pick, lift, place = (rows[c].astype(bool) for c in ("pick", "lift", "place"))
+    bad = (rows["success"].astype(bool) != place) | (place & ~lift) | (lift & ~pick)
+    bad |= rows["stage"] != pick.astype(int) + lift.astype(int) + place.astype(int)
+    if bad.any():
+        row = rows[bad].iloc[0]
+        raise ValueError(
+            f"{path}: {int(bad.sum())} rows contradict themselves, e.g. episode {row['episode']} of "
+            f"{row['policy_label']!r} under {row['condition']!r}: success={bool(row['success'])} with pick, lift, "
+            f"place = {bool(row['pick'])}, {bool(row['lift'])}, {bool(row['place'])} and stage {row['stage']}; "
+            "the table was edited after the sweep wrote it"
+        )
+
+
 def refuse_rows_outside(path: Path, frame, columns: list[str], belongs, manifest: str) -> None:
     """Raises naming the first row of `frame` (read from `path`) whose `columns` values `belongs` rejects:
     a row the run's manifest never asked for is an error, never counted, never dropped."""

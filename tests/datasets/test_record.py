@@ -1,5 +1,6 @@
 import json
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -120,11 +121,20 @@ def test_a_recording_that_saved_no_episode_does_not_block_the_corrected_rerun(tm
     assert failed.returncode == 2, failed.stderr[-2000:]
     assert "--env.episode_length=3" in failed.stderr.strip().splitlines()[-1]
     assert (root / RECORD_FILE).exists()  # the failed seed is on record until a rerun starts afresh
+    # A user's file, or a link out of the folder: refused, and nothing is removed, here or behind the link.
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "precious.txt").write_text("mine")
     (root / "notes.txt").write_text("mine")
+    shutil.rmtree(root / "images", ignore_errors=True)
+    (root / "images").symlink_to(outside, target_is_directory=True)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     refused = run_cli("condground", "record", *common, check=False)
-    assert refused.returncode == 2 and "notes.txt" in refused.stderr, refused.stderr[-2000:]
-    assert (root / "notes.txt").read_text() == "mine"
+    assert refused.returncode == 2, refused.stderr[-2000:]
+    assert "notes.txt" in refused.stderr and "images (a link)" in refused.stderr
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     (root / "notes.txt").unlink()
+    (root / "images").unlink()
     out = run_cli(
         "condground", "record", *common, "--env.observation_height=96", "--env.observation_width=128"
     )

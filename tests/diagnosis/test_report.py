@@ -468,6 +468,19 @@ def test_refuses_parquet_of_another_grid(tmp_path):
         build_report(ReportConfig(input_dir=[str(folder)], output=str(tmp_path / "r.html")))
 
 
+def test_refuses_rows_edited_to_contradict_themselves(tmp_path):
+    manifest = sweep_manifest(TASKS[0])
+    folder = tmp_path / "edited"
+    folder.mkdir()
+    (folder / "sweep.json").write_text(json.dumps(manifest))
+    rows = sweep_rows(manifest, np.random.default_rng(0))
+    failed = rows.index[~rows.place.astype(bool)][0]
+    rows.loc[failed, "success"] = True  # a failure turned into a success, nothing else touched
+    write_table(rows, folder / "results.parquet", metadata=manifest)
+    with pytest.raises(ValueError, match=r"edited/results.parquet: 1 rows contradict themselves"):
+        build_report(ReportConfig(input_dir=[str(folder)], output=str(tmp_path / "r.html")))
+
+
 def test_sweeps_split_by_condition_are_paired_across_dirs(tmp_path):
     clean = write_sweep(tmp_path / "clean", TASKS[0], 1, ["clean"])
     rest = write_sweep(tmp_path / "rest", TASKS[0], 2, ["object_color_3", "full_mixed"])
@@ -528,6 +541,19 @@ def test_a_report_replaces_only_what_it_wrote(inputs, tmp_path):
         with pytest.raises((ValueError, FileExistsError), match=re.escape(fragment)):
             build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(output)))
         assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_a_report_never_writes_through_a_link(inputs, tmp_path):
+    cfg = ReportConfig(input_dir=[str(inputs[4])], output=str(tmp_path / "r.html"))
+    build_report(cfg)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("mine")
+    figure = next((tmp_path / "r_files").glob("*.png"))
+    figure.unlink()
+    figure.symlink_to(victim)
+    with pytest.raises(PermissionError, match="would write through the link"):
+        build_report(cfg)
+    assert victim.read_text() == "mine"
 
 
 def test_a_report_that_died_half_way_does_not_block_its_rerun(inputs, tmp_path, monkeypatch):

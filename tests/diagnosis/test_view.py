@@ -95,3 +95,17 @@ def test_a_dataset_without_labels_is_named(plain_dataset, tmp_path, capsys):
     data = ["--dataset.repo_id=local/test_plain", f"--dataset.root={plain_dataset}"]
     assert main(["view", *data, f"--output={tmp_path / 'x.rrd'}"]) == 2
     assert "has no label features" in capsys.readouterr().err and not (tmp_path / "x.rrd").exists()
+
+
+def test_view_refuses_an_output_it_cannot_write_in_one_line(tmp_path, capsys):
+    from lerobot_condground.cli import main
+
+    (tmp_path / "folder.rrd").mkdir()
+    (tmp_path / "afile").write_text("the user's")
+    for output, fragment in (
+        (tmp_path / "folder.rrd", "allowed: a file name ending in .rrd"),
+        (tmp_path / "afile" / "x.rrd", "afile is a file, not a folder"),
+    ):
+        assert main(["view", f"--attention_dir={tmp_path}", f"--output={output}"]) == 2
+        assert fragment in capsys.readouterr().err
+    assert (tmp_path / "afile").read_text() == "the user's"

@@ -238,7 +238,7 @@ def test_a_policy_type_that_loads_what_its_config_names_is_refused(act_checkpoin
     assert not marker.exists()
 
 
-def test_a_hub_snapshot_may_link_into_its_blobs_and_no_further(tmp_path):
+def test_a_hub_snapshot_may_link_into_its_blobs_and_no_further(tmp_path, monkeypatch):
     repo = tmp_path / "models--someone--policy"
     snapshot = repo / "snapshots" / ("0" * 40)
     snapshot.mkdir(parents=True)
@@ -252,6 +252,22 @@ def test_a_hub_snapshot_may_link_into_its_blobs_and_no_further(tmp_path):
     for name in ("leak.safetensors", "../../blobs/abc"):
         with pytest.raises(PermissionError, match="is not a file inside the checkpoint's folder"):
             check_state_file(processor, 0, {"state_file": name})
+    # A cache edited so that a snapshot file links elsewhere in the repo folder, or out of it, is refused whole.
+    import huggingface_hub.constants
+
+    from lerobot_condground.core.trust import pinned_folder
+
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("0" * 40)
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path))
+    with pytest.raises(PermissionError, match="leak.safetensors .* links outside the repo's blobs"):
+        pinned_folder("someone/policy")
+    (snapshot / "leak.safetensors").unlink()
+    (snapshot / "config.json").symlink_to("../../refs/main")
+    with pytest.raises(PermissionError, match="config.json .* links outside the repo's blobs"):
+        pinned_folder("someone/policy")
+    (snapshot / "config.json").unlink()
+    assert pinned_folder("someone/policy") == snapshot
     # The same links in a plain folder: its files must stay in it.
     plain = tmp_path / "plain"
     shutil.copytree(snapshot, plain, symlinks=True)

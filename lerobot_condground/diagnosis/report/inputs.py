@@ -20,6 +20,7 @@ from lerobot_condground.evaluation.results import (
     check_rows_against_runs,
     read_metadata,
     read_table,
+    refuse_contradictions,
     refuse_rows_outside,
 )
 
@@ -84,6 +85,7 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
         path, frame, ["policy_label", "checkpoint_hash"], lambda label, h: (label, h) in listed, "sweep.json"
     )
     _refuse_repeats(folder, frame, EPISODE_KEY, "episode")
+    refuse_contradictions(path, frame)
     if grid.get("counterbalanced"):
         # Another scene distribution than the plain condition of the same name: its own rows in every table.
         frame = frame.assign(condition=frame["condition"] + COUNTERBALANCED)

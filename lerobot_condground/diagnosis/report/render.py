@@ -147,6 +147,20 @@ def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
             f"--output={html_path} would overwrite {foreign[0]}, which condground report did not write; "
             "choose another --output or move that file away"
         )
+    if files_dir.exists() and not files_dir.is_dir():
+        raise FileExistsError(
+            f"--output={html_path}: {files_dir} is a file; the report's figures go in that folder"
+        )
+    # Writing through a link would overwrite whatever it points at.
+    links = [
+        p
+        for p in (html_path, md_path, files_dir, manifest_path, *(files_dir / n for n in files))
+        if p.is_symlink()
+    ]
+    if links:
+        raise PermissionError(
+            f"--output={html_path} would write through the link {links[0]}; remove it or choose another --output"
+        )
     html = render_html(doc)
     files_dir.mkdir(parents=True, exist_ok=True)
     # The manifest claims every file before any is written: a run that dies half way leaves files its
