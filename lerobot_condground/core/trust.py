@@ -215,6 +215,10 @@ def check_dataset_paths(root: Path) -> None:
     info_file = root / "meta" / "info.json"
     if not info_file.is_file():
         return
+    if not within(root, Path("meta/info.json")):
+        raise PermissionError(
+            f"{info_file} links outside the dataset's root {root}; allowed: a file inside it"
+        )
     info = read_json_object(info_file, "Dataset info")
     features = info.get("features") if isinstance(info.get("features"), dict) else {}
     video_keys = [k for k, ft in features.items() if isinstance(ft, dict) and ft.get("dtype") == "video"]

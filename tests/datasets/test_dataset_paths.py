@@ -84,3 +84,18 @@ def test_every_command_refuses_templates_that_leave_the_root(
         assert sorted(p.relative_to(root) for p in root.rglob("*")) == before, name
         assert not (tmp_path / "out").exists() and not (tmp_path / "train").exists()
         assert not (tmp_path / "prompts").exists() and not (tmp_path / "fit").exists()
+
+
+def test_a_dataset_whose_info_links_outside_its_root_is_refused(tmp_path):
+    from lerobot_condground.core.trust import check_dataset_paths
+
+    outside = tmp_path / "elsewhere" / "info.json"
+    outside.parent.mkdir()
+    outside.write_text(
+        json.dumps({"data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"})
+    )
+    root = tmp_path / "ds"
+    (root / "meta").mkdir(parents=True)
+    (root / "meta" / "info.json").symlink_to(outside)
+    with pytest.raises(PermissionError, match="info.json links outside the dataset's root"):
+        check_dataset_paths(root)

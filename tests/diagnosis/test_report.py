@@ -606,6 +606,14 @@ def test_a_tampered_manifest_deletes_nothing(inputs, tmp_path):
     with pytest.raises(ValueError, match="is damaged .*not a plain PNG file name"):
         build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(out)))
     assert victim.is_file()
+    # A user's figure claimed by an edited manifest, by name alone or with a made-up hash: kept.
+    holiday = tmp_path / "r_files" / "holiday.png"
+    holiday.write_bytes(png_bytes())
+    ours = [p.name for p in (tmp_path / "r_files").glob("*.png") if p != holiday]
+    for figures in ([*ours, "holiday.png"], {**dict.fromkeys(ours), "holiday.png": "0" * 64}):
+        (tmp_path / "r_files" / "condground-report.json").write_text(json.dumps({"figures": figures}))
+        build_report(ReportConfig(input_dir=[str(inputs[4])], output=str(out)))
+        assert holiday.read_bytes() == png_bytes()
 
 
 def write_subgoals(folder: Path, successes: dict, scored_by: str = "env") -> Path:

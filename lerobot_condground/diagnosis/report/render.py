@@ -4,6 +4,7 @@ can be mailed or archived alone, and Markdown with the PNGs written to `NAME_fil
 from __future__ import annotations
 
 import base64
+import hashlib
 import html
 import json
 import re
@@ -107,22 +108,28 @@ def render_markdown(doc: Document, files_dir: str) -> tuple[str, dict[str, bytes
     return text, {f"{figure.name}.png": figure.png for figure in doc.figures}
 
 
-# In NAME_files/: the figures the last run wrote, the only files a rerun replaces or removes.
+# In NAME_files/: the figures the last run wrote with their sha256, the only files a rerun replaces or removes.
 MANIFEST = "condground-report.json"
 
 
-def _written_before(manifest_path: Path) -> set[str] | None:
-    """The figure names an earlier report wrote (None: no earlier report). The manifest is a file on disk
-    like any input: a name that is not a plain PNG file name is refused, never deleted."""
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _written_before(manifest_path: Path) -> dict[str, str | None] | None:
+    """The figures an earlier report wrote, by name, with their sha256 (None: no earlier report; a hash of
+    None: a manifest of before the hashes). The manifest is a file on disk like any input: a name that is
+    not a plain PNG file name is refused, and a figure is removed only if its content is the one listed."""
     if not manifest_path.is_file():
         return None
     try:
-        names = json.loads(manifest_path.read_text())["figures"]
-        if not all(isinstance(n, str) and re.fullmatch(r"[\w.-]+\.png", n) and n[0] != "." for n in names):
+        figures = json.loads(manifest_path.read_text())["figures"]
+        figures = figures if isinstance(figures, dict) else dict.fromkeys(figures)
+        if not all(isinstance(n, str) and re.fullmatch(r"[\w.-]+\.png", n) and n[0] != "." for n in figures):
             raise ValueError("a figure name is not a plain PNG file name")
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{manifest_path} is damaged ({err}); choose another --output") from None
-    return set(names)
+    return figures
 
 
 def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
@@ -165,12 +172,15 @@ def write_report(doc: Document, html_path: Path) -> tuple[Path, Path]:
     files_dir.mkdir(parents=True, exist_ok=True)
     # The manifest claims every file before any is written: a run that dies half way leaves files its
     # rerun knows as its own, not files that block it.
-    manifest_path.write_text(json.dumps({"figures": sorted((before or set()) | set(files))}, indent=1))
+    written = {name: _sha(png) for name, png in files.items()}
+    manifest_path.write_text(json.dumps({"figures": {**(before or {}), **written}}, indent=1, sort_keys=True))
     html_path.write_text(html, encoding="utf-8")
-    for name in (before or set()) - set(files):  # a rerun with fewer figures must not leave old ones behind
-        (files_dir / name).unlink(missing_ok=True)
+    for name, sha in (before or {}).items():  # a rerun with fewer figures must not leave old ones behind
+        stale = files_dir / name
+        if name not in files and sha is not None and stale.is_file() and _sha(stale.read_bytes()) == sha:
+            stale.unlink()
     for name, png in files.items():
         (files_dir / name).write_bytes(png)
     md_path.write_text(text, encoding="utf-8")
-    manifest_path.write_text(json.dumps({"figures": sorted(files)}, indent=1))
+    manifest_path.write_text(json.dumps({"figures": written}, indent=1, sort_keys=True))
     return html_path, md_path
