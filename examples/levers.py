@@ -136,12 +136,28 @@ def sweep_all(args, todo: list[tuple[Path, Path]]) -> None:
 
 
 def elapsed_minutes(log: Path, step: int, total: int) -> float:
-    """Wall-clock minutes of training at `step`, from the progress bar `condground train` logs."""
-    found = re.search(rf" {step}/{total} \[(\d+(?::\d+){{1,2}})<", log.read_text(errors="replace"))
-    if found is None:
-        raise SystemExit(f"{log}: no progress line at step {step}/{total}")
-    seconds = sum(int(v) * 60**i for i, v in enumerate(reversed(found[1].split(":"))))
-    return seconds / 60
+    """Wall-clock minutes of training at `step`, from the progress bars `condground train` logs. A resumed
+    run's bar counts the steps left from 0; the minutes add up over the segments, each counted up to the
+    checkpoint the next one resumed from (steps past it were lost with the run that made them)."""
+    elapsed: dict[tuple[int, int], float] = {}  # (steps left at the segment's start, step in it) -> minutes
+    for done, left, clock in re.findall(
+        r" (\d+)/(\d+) \[(\d+(?::\d+){1,2})<", log.read_text(errors="replace")
+    ):
+        seconds = sum(int(v) * 60**i for i, v in enumerate(reversed(clock.split(":"))))
+        elapsed.setdefault((int(left), int(done)), seconds / 60)
+    starts = sorted({total - left for left, _ in elapsed})  # the step each segment started from
+    minutes = 0.0
+    for i, start in enumerate(starts):
+        stop = starts[i + 1] if i + 1 < len(starts) else total
+        key = (total - start, min(step, stop) - start)
+        if key not in elapsed:
+            raise SystemExit(
+                f"{log}: no progress line at step {key[1]}/{key[0]} of the run from step {start}"
+            )
+        minutes += elapsed[key]
+        if step <= stop:
+            return minutes
+    raise SystemExit(f"{log}: step {step} is past the run's {total} steps")
 
 
 def curves(args, arms: dict[str, list[str]]) -> None:
