@@ -188,26 +188,8 @@ def curves(args, arms: dict[str, list[str]]) -> None:
         table = pd.DataFrame(rows)
         path = args.csv.parent / f"{args.task}_{name}.csv"
         table.to_csv(path, index=False, float_format="%.4f")
-        plot_curve(table, path.with_suffix(".png"), f"{args.task} {name}")
+        plot_success(table, path.with_suffix(".png"), "minutes", CURVE_XLABEL, f"{args.task} {name}")
         print(f"{path}:\n{table.to_string(index=False)}")
-
-
-def plot_curve(table: pd.DataFrame, path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    for j, (seed, run) in enumerate(table.groupby("seed")):
-        ax.errorbar(run["minutes"], run["success"] * 100,
-                    yerr=[(run["success"] - run["ci_low"]) * 100, (run["ci_high"] - run["success"]) * 100],
-                    marker="os^v"[j % 4], capsize=2, label=f"seed {seed}")  # fmt: skip
-    ax.set(xlabel="wall-clock minutes of training (one thread, machine shared: see README)",
-           ylabel="held-out clean success (%)", title=title, ylim=(-5, 105))  # fmt: skip
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
 
 
 def run_all(commands: list[list[str]], jobs: int) -> None:
@@ -241,21 +223,25 @@ def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
     return frame.sort_values("layout_seed").reset_index(drop=True)
 
 
-def plot_checkpoints(rows: pd.DataFrame, path: Path) -> None:
-    """Held-out success of every evaluated checkpoint, one colour per lever, one marker per seed."""
+CURVE_XLABEL = "wall-clock minutes of training (one thread, machine shared: see README)"
+
+
+def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str, by: str | None = None):
+    """Held-out success with its intervals against `x`: one colour per `by` group (a lever) or per seed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    for i, (lever, runs) in enumerate(rows.groupby("lever", sort=False)):
+    for i, (name, runs) in enumerate(rows.groupby(by, sort=False) if by else [(None, rows)]):
         for j, (seed, run) in enumerate(runs.groupby("seed")):
-            run = run.sort_values("step")
-            ax.errorbar(run["step"] + 40 * (i - 1), run["success"] * 100,
+            run = run.sort_values(x)
+            ax.errorbar(run[x] + (40 * (i - 1) if by else 0), run["success"] * 100,
                         yerr=[(run["success"] - run["ci_low"]) * 100, (run["ci_high"] - run["success"]) * 100],
-                        color=f"C{i}", marker="os^v"[j % 4], capsize=2, label=f"{lever}, seed {seed}")  # fmt: skip
-    ax.set(xlabel="training steps", ylabel="held-out clean success (%)", title=str(rows["task"].iloc[0]))
+                        color=f"C{i if by else j}", marker="os^v"[j % 4], capsize=2,
+                        label=f"{name}, seed {seed}" if by else f"seed {seed}")  # fmt: skip
+    ax.set(xlabel=xlabel, ylabel="held-out clean success (%)", title=title, ylim=(-5, 105))
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -296,9 +282,10 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
     merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows])
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, arms)
-    plot_checkpoints(
-        mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png")
-    )
+    plot_success(
+        mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),
+        "step", "training steps", args.task, by="lever",
+    )  # fmt: skip
     print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
     if args.train_layouts:
         fit_vs_heldout(args, arms)

@@ -7,6 +7,11 @@ import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
+# An xdist worker gets its share of the cores, and so do the subprocesses it starts (they inherit these):
+# with two workers of two threads each on 2 cores, a CPU-bound test ran 3-4x slower than on one thread.
+if workers := int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0")):
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, str(max(1, (os.cpu_count() or 1) // workers)))
 
 import lerobot_policy_condground  # noqa: E402, F401  (registers the plugin, as LeRobot's discovery does)
 from helpers import make_checkpoint, run_cli  # noqa: E402

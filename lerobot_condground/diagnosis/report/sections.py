@@ -160,7 +160,9 @@ def _paper_success(method: str | None, task: str, condition: str) -> float | Non
     return float(quoted.split()[1]) if quoted.startswith("success ") else None
 
 
-def _section_overview(results: pd.DataFrame, methods, labels, variant_figures: list[Figure]) -> Section:
+def _section_overview(
+    results: pd.DataFrame, metrics: pd.DataFrame, methods, labels, variant_figures: list[Figure]
+) -> Section:
     """The pictures a reader looks at first; the tables they summarize follow in the later sections."""
     section = Section("At a glance")
     if results.empty:
@@ -173,7 +175,6 @@ def _section_overview(results: pd.DataFrame, methods, labels, variant_figures: l
             "between variants; the full tables follow below (folded in the HTML: click a caption)."
         )
     )
-    metrics = cell_metrics(results, by=CELL)
     funnel = stage_funnel(results)
     for task in _task_order(results["task"]):
         tm = metrics[metrics.task == task]
@@ -262,14 +263,13 @@ def _paper_stage(method: str | None, task: str, condition: str) -> str:
     return "—"
 
 
-def _section_stages(results: pd.DataFrame, methods, labels) -> Section:
+def _section_stages(results: pd.DataFrame, m: pd.DataFrame, methods, labels) -> Section:
     section = Section("Stage metrics per policy, task and condition")
     if results.empty:
         return section.note(
             "No sweep among the inputs: `condground sweep` writes the per-episode results "
             "these tables and plots come from."
         )
-    m = cell_metrics(results, by=CELL)
     conditions = _condition_order(results["condition"])
     rows = []
     for label in labels:
@@ -871,6 +871,7 @@ def build_document(inputs: Inputs, cfg: ReportConfig) -> Document:
     results = inputs.results
     methods = _label_methods(results) if len(results) else {}
     labels = _label_order(results["policy_label"], methods) if len(results) else []
+    metrics = cell_metrics(results, by=CELL) if len(results) else None  # the overview's and the stages'
     intro = []
     if len(results):
         sweeps = results["source"].nunique()
@@ -892,9 +893,9 @@ def build_document(inputs: Inputs, cfg: ReportConfig) -> Document:
         cfg.title,
         intro,
         [
-            _section_overview(results, methods, labels, variant_figures),
+            _section_overview(results, metrics, methods, labels, variant_figures),
             _section_table1(results, methods, labels),
-            _section_stages(results, methods, labels),
+            _section_stages(results, metrics, methods, labels),
             _section_condition_differences(results, labels),
             variants,
             _section_subgoals(inputs.subgoals),
