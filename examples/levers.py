@@ -419,8 +419,8 @@ def main() -> None:
         "--curve", action="append", default=[], help="ARM:NAME: the curve stage writes <task>_<NAME>.csv"
     )
     args = parser.parse_args()
-    if not args.lever:
-        parser.error("give at least one --lever=NAME=FLAGS")
+    if not args.lever and args.stage in ("all", "analyse"):
+        parser.error("give at least one --lever=NAME=FLAGS to compare with the baseline")
     args.seeds = [int(s) for s in args.seeds.split(",")]
     args.flags = shlex.split(args.flags)
     arms = parse_levers(args.lever, args.baseline)

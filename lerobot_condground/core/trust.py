@@ -198,7 +198,7 @@ def check_state_file(file: Path, index: int, step: dict) -> None:
     if state_file is not None and not (isinstance(state_file, str) and inside(file.parent, state_file)):
         raise PermissionError(
             f"Processor file {file}, step {index}: state_file {state_file!r} is not a file inside the checkpoint's folder "
-            f"{file.parent}; allowed: a relative path without '..' out of it"
+            f"{file.parent}; allowed: a relative path to a file in that folder (no '..', no link out of it)"
         )
 
 

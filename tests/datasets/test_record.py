@@ -232,7 +232,7 @@ def test_training_frames_are_the_renders_evaluation_sees(recorded_dataset):
     """Training decodes the recording's video (AV1, 4:2:0 chroma); evaluation feeds the env's renders. Replaying
     each episode's actions in its layout reproduces the states exactly, and the decoded frames stay within
     the stated tolerance of the renders: PSNR >= 32 dB over an episode, >= 30 dB on every frame (measured
-    2026-12-01: 34.8-34.9 dB and >= 33.2 dB per frame at 96x128 on Task 1)."""
+    2026-12-01: 34.8-34.9 dB and >= 33.2 dB per frame at 96x128 on Task 1). The prompt crops are equal."""
     from lerobot_condground.envs.configs import CondGroundEnvConfig
 
     ds = LeRobotDataset("local/test_full_mixed", root=recorded_dataset)
@@ -242,10 +242,16 @@ def test_training_frames_are_the_renders_evaluation_sees(recorded_dataset):
         obs, _ = env.reset(seed=episode["seed"])
         errors = []
         for i in range(ds.meta.episodes["dataset_from_index"][ep], ds.meta.episodes["dataset_to_index"][ep]):
-            item = ds[i]
+            item = decode_labels(ds[i])
             np.testing.assert_allclose(obs["agent_pos"], item["observation.state"].numpy(), atol=1e-5)
             decoded = item["observation.images.top"].permute(1, 2, 0).numpy() * 255
             errors.append(((decoded - obs["pixels"]["top"].astype(float)) ** 2).mean())
+            # The prompt crops are stored losslessly: `full` conditions on the very crops in both.
+            for key, name in (
+                (OBS_PROMPT_OBJECT, "prompt_object"),
+                (OBS_PROMPT_RECEPTACLE, "prompt_receptacle"),
+            ):
+                np.testing.assert_array_equal(item[key].numpy(), obs[name], err_msg=f"{key}, frame {i}")
             obs, *_ = env.step(item["action"].numpy())
         psnr = 10 * np.log10(255**2 / np.array(errors))
         assert 10 * np.log10(255**2 / np.mean(errors)) >= 32 and psnr.min() >= 30, (ep, psnr.min())
