@@ -133,6 +133,17 @@ class ScriptedExpert(WaypointExpert):
     def done(self) -> bool:
         return self.phase == "done"
 
+    @property
+    def drift_gain(self) -> float:
+        """How much of a recording's drift (`JointDrift`) the arm carries now. Full while it moves freely;
+        fading to none along the descent and the placing, so that the frames show the arm brought back onto
+        the expert's path before the gripper closes or opens; none while it does."""
+        if self.phase in ("approach", "lift", "transport", "retreat"):
+            return 1.0
+        if self.phase in ("descend", "place"):
+            return 1.0 - min(self.step_in_phase / self.seg[-1], 1.0)
+        return 0.0
+
     # -------------------------------------------------------------- planning
     def _target(self):
         pos, quat = self.env.entity_pose(1)
@@ -191,15 +202,41 @@ class ScriptedExpert(WaypointExpert):
         self._start(PHASES[PHASES.index(self.phase) + 1])
 
 
-def run_expert_episode(env, expert, seed: int, max_steps: int, on_step=None) -> dict:
-    """One expert episode; `on_step(obs, action, phase_label)` sees every observation before its action."""
+class JointDrift:
+    """Recovery data after DART (Laskey et al., 2017): the arm is sent the expert's joint targets plus a smooth
+    random offset (Ornstein-Uhlenbeck: `std` rad on each arm joint, correlation time `time_constant` s), while
+    the frames keep the expert's own target as the action. The states leave the expert's path by about `std`
+    and each frame's action is the way back to it; the gripper is never perturbed."""
+
+    def __init__(self, std: float, time_constant: float, fps: int, seed: int):
+        self.std = std
+        self.decay = math.exp(-1.0 / (fps * time_constant))
+        self.rng = np.random.default_rng(seed)
+        self.offset = np.zeros(6)
+        self.largest = 0.0  # rad, the largest offset sent to a joint: what the provenance records
+
+    def __call__(self, action: np.ndarray, gain: float) -> np.ndarray:
+        kick = self.rng.standard_normal(6) * self.std * math.sqrt(1.0 - self.decay**2)
+        self.offset = self.decay * self.offset + kick
+        sent = action.copy()
+        sent[:6] += (gain * self.offset).astype(sent.dtype)
+        self.largest = max(self.largest, float(np.max(np.abs(gain * self.offset))))
+        return sent
+
+
+def run_expert_episode(
+    env, expert, seed: int, max_steps: int, on_step=None, drift: JointDrift | None = None
+) -> dict:
+    """One expert episode; `on_step(obs, action, phase_label)` sees every observation before its action (the
+    expert's target, also when `drift` moves the arm off it)."""
     obs, info = env.reset(seed=seed)
     expert.reset(env)
     for _ in range(max_steps):
         action = expert.act(obs)
         if on_step is not None:
             on_step(obs, action, expert.phase_label)
-        obs, _, terminated, truncated, info = env.step(action)
+        sent = action if drift is None else drift(action, expert.drift_gain)
+        obs, _, terminated, truncated, info = env.step(sent)
         if terminated or truncated:
             break
     return info

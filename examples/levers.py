@@ -7,8 +7,8 @@ clean layouts, paired layout by layout, with a 95 % interval and McNemar's exact
         --out=outputs/levers --csv=docs/learning-curve/v2/levers.csv
 
 Every run (baseline and each lever, each seed) trains with `condground train` on --threads torch threads,
-all at once; the lever's flags come after the CPU configuration's (lerobot_condground/core/training.py) and
---flags. A rerun resumes unfinished runs from their last checkpoint and skips finished evaluations. Pairs
+all at once; the lever's flags come after the CPU configuration's (lerobot_condground/core/training.py), --data
+and --flags, so a lever may train on another recording (`--lever='dart=--dataset.root=...'`). A rerun resumes unfinished runs from their last checkpoint and skips finished evaluations. Pairs
 are (seed index, checkpoint rank, layout): the k-th last checkpoint of the baseline's i-th seed against
 the k-th last of the lever's i-th seed, on the same layout. Writes one row per lever to --csv (replacing
 an earlier row of the same lever and task) and every checkpoint's rate beside it
@@ -64,8 +64,8 @@ def train_command(args, arm_flags: list[str], train: Path, seed: int) -> list[st
         return ["condground", "train", f"--config_path={last}", "--resume=true"]
     return [
         "condground", "train", "--policy.type=act_modified", f"--policy.variant={args.variant}",
-        "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), *args.flags, *arm_flags,
-        f"--batch_size={CPU_BATCH_SIZE}", f"--dataset.repo_id=local/{args.task}", f"--dataset.root={args.data}",
+        "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), f"--batch_size={CPU_BATCH_SIZE}",
+        f"--dataset.repo_id=local/{args.task}", f"--dataset.root={args.data}", *args.flags, *arm_flags,
         f"--steps={args.steps}", f"--save_freq={args.every}", "--log_freq=100", "--num_workers=0",
         "--wandb.enable=false", f"--seed={seed}", f"--output_dir={train}",
     ]  # fmt: skip

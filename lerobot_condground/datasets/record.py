@@ -76,14 +76,28 @@ class RecordDatasetConfig(DatasetOutputConfig):
     checkpoint_every: int = 1
 
 
+@dataclass
+class DriftConfig:
+    # Recovery data (DART): rad of smooth random offset added to each arm joint's target the arm is sent,
+    # while the frames keep the expert's target as the action (`envs.expert.JointDrift`). 0: clean
+    # demonstrations. At 0.03 the tool wanders about 1-2 cm off the expert's path between the grasp and the
+    # release; it is brought back before the gripper closes or opens.
+    std: float = 0.0
+    # Seconds over which the offset stays correlated: long enough for the arm to follow it off the path.
+    time_constant: float = 0.5
+
+
 # Far beyond any study here, well below what fills a disk unnoticed.
 MAX_EPISODES = 100_000
+# About 6 cm at the tool: beyond it the expert's grasps and the table's edges fail more than they teach.
+MAX_DRIFT_STD = 0.15
 
 
 @dataclass
 class RecordConfig:
     env: CondGroundEnvConfig = field(default_factory=CondGroundEnvConfig)
     dataset: RecordDatasetConfig = field(default_factory=RecordDatasetConfig)
+    drift: DriftConfig = field(default_factory=DriftConfig)
     # Episode k of a fresh dataset is tried with seed + k (and later seeds after failures).
     seed: int = 0
     # Stop with an error when the expert fails this many episodes in a row.
@@ -95,6 +109,19 @@ class RecordConfig:
         check_at_least(self.dataset, "dataset.", num_episodes=1, checkpoint_every=1)
         check_at_least(self, "", max_consecutive_failures=1)
         check_seed("--seed", self.seed, self.dataset.num_episodes)
+        if not 0.0 <= self.drift.std <= MAX_DRIFT_STD:
+            raise ValueError(
+                f"--drift.std={self.drift.std} is not allowed; allowed: 0 (none) to {MAX_DRIFT_STD} rad"
+            )
+        if not self.drift.time_constant > 0.0:
+            raise ValueError(
+                f"--drift.time_constant={self.drift.time_constant} is not allowed; allowed: seconds above 0"
+            )
+        if self.drift.std and self.env.task == ROUTING_TASK:
+            raise ValueError(
+                f"--drift.std={self.drift.std} is not allowed with --env.task={ROUTING_TASK}; allowed: 0 (its "
+                "expert does not fade the drift before it grasps)"
+            )
         if self.dataset.num_episodes > MAX_EPISODES:
             raise ValueError(
                 f"--dataset.num_episodes={self.dataset.num_episodes} is not allowed; allowed: 1 to {MAX_EPISODES} "
@@ -198,6 +225,11 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         for key in ("task", "condition", "counterbalanced", "subgoal", "servo"):
             if recorded.get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
                 mismatches.append(f"env.{key} {recorded[key]!r} != {getattr(cfg.env, key)!r}")
+        drift = previous.get("drift", {"std": 0.0, "time_constant": cfg.drift.time_constant})
+        if drift["std"] != cfg.drift.std or (
+            cfg.drift.std and drift["time_constant"] != cfg.drift.time_constant
+        ):
+            mismatches.append(f"drift {drift} != {vars(cfg.drift)}")
         if mismatches:
             raise ValueError(
                 f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
@@ -277,7 +309,8 @@ def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
     from lerobot_condground import __version__
 
     env = {key: getattr(cfg.env, key) for key in PROVENANCE_ENV_KEYS}
-    payload = {"env": env, "seed": cfg.seed, "version": __version__, **state}
+    drift = {"std": cfg.drift.std, "time_constant": cfg.drift.time_constant}
+    payload = {"env": env, "drift": drift, "seed": cfg.seed, "version": __version__, **state}
     tmp = root / (RECORD_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=str))
     os.replace(tmp, root / RECORD_FILE)
@@ -289,7 +322,7 @@ def record(cfg: RecordConfig) -> dict:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from tqdm import tqdm
 
-    from lerobot_condground.envs.expert import run_expert_episode
+    from lerobot_condground.envs.expert import JointDrift, run_expert_episode
 
     # SVT-AV1 (LeRobot's video encoder) prints a 20-line banner to stderr for every encoded episode; at
     # level 1 (errors) it stays quiet. Read by the library at each encoder start; a user's value wins.
@@ -325,6 +358,11 @@ def record(cfg: RecordConfig) -> dict:
             seed = state["next_seed"]
             state["next_seed"] += 1
             frames: list[dict] = []
+            drift = (
+                JointDrift(cfg.drift.std, cfg.drift.time_constant, cfg.env.fps, seed)
+                if cfg.drift.std
+                else None
+            )
             info = run_expert_episode(
                 env,
                 expert,
@@ -333,6 +371,7 @@ def record(cfg: RecordConfig) -> dict:
                 on_step=lambda obs, action, phase: frames.append(  # noqa: B023  (called within this iteration)
                     episode_frames(obs, action, phase, env.task_description)
                 ),
+                drift=drift,
             )
             attempts += 1
             run_stages[int(info["stage"])] += 1
@@ -351,6 +390,7 @@ def record(cfg: RecordConfig) -> dict:
             state["episodes"].append(
                 {"seed": seed, "task": env.task_description, "entities": env.entity_table()}
                 | ({"subgoal": env.episode} if cfg.env.task == ROUTING_TASK else {})
+                | ({"drift_largest_rad": round(drift.largest, 4)} if drift else {})
             )
             _write_provenance(root, cfg, state)  # before the data, so a resumed run never reuses a seed
             for frame in frames:

@@ -203,14 +203,33 @@ def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
     assert len(seeds) == total and len(set(seeds)) == total
 
 
+def test_a_drift_recording_says_how_it_was_made_and_is_resumed_only_with_the_same_drift(tmp_path):
+    root = tmp_path / "dart"
+    common = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/dart", f"--dataset.root={root}",
+              "--progress=false", "--env.observation_height=96", "--env.observation_width=128"]  # fmt: skip
+    run_cli("condground", "record", *common, "--dataset.num_episodes=1", "--drift.std=0.05")
+    provenance = read_json(root / RECORD_FILE)
+    assert provenance["drift"] == {"std": 0.05, "time_constant": 0.5}
+    assert 0.05 < provenance["episodes"][0]["drift_largest_rad"] < 0.3
+    bad = run_cli("condground", "record", *common, "--dataset.num_episodes=2", check=False)
+    assert bad.returncode != 0 and "drift {'std': 0.05" in bad.stderr, bad.stderr[-2000:]
+    assert LeRobotDataset("local/dart", root=root).meta.total_episodes == 1
+
+
 def test_bad_record_flags_fail_before_any_work(tmp_path):
     root = tmp_path / "never"
     for flag, fragment in (
         ("--env.condition=object_color_9", "Unknown condition 'object_color_9'"),
         ("--env.observation_height=1000", "Image height 1000 cannot be rendered"),
         ("--env.task=PickPlace-v0", "Unknown task 'PickPlace-v0'"),
+        ("--drift.std=-0.1", "--drift.std=-0.1 is not allowed; allowed: 0 (none) to 0.15 rad"),
+        ("--drift.time_constant=0", "--drift.time_constant=0.0 is not allowed"),
+        (
+            "--drift.std=0.03 --env.task=InstrumentRouting-v0",
+            "not allowed with --env.task=InstrumentRouting-v0",
+        ),
     ):
-        out = run_cli("condground", "record", flag, f"--dataset.root={root}", check=False)
+        out = run_cli("condground", "record", *flag.split(), f"--dataset.root={root}", check=False)
         assert out.returncode != 0 and fragment in out.stderr + out.stdout, out.stderr[-2000:]
         assert not root.exists()
 

@@ -7,7 +7,7 @@ from gymnasium.utils.env_checker import check_env
 
 import lerobot_condground  # noqa: F401
 from lerobot_condground.envs.assets import COLORS, RECEPTACLE_SHAPES, WALL_THICKNESS
-from lerobot_condground.envs.expert import ScriptedExpert, run_expert_episode
+from lerobot_condground.envs.expert import JointDrift, ScriptedExpert, run_expert_episode
 from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
 
@@ -50,6 +50,30 @@ def test_same_seed_same_frames_and_outcome():
     assert a_frames.shape == b_frames.shape and np.array_equal(a_frames, b_frames)
     assert a_info == b_info and a_info["is_success"]
     assert a_frames.shape != c_frames.shape or not np.array_equal(a_frames, c_frames)
+
+
+def test_drift_moves_the_arm_off_the_experts_path_and_back_before_the_grasp_while_the_labels_stay_its_own():
+    """DART recovery data: the frames' actions are the expert's targets, the states are where the drifted arm
+    went; the drift fades before the gripper closes, so the grasp still holds."""
+    runs = {}
+    for drift in (None, JointDrift(std=0.03, time_constant=0.5, fps=20, seed=7)):
+        env = PickPlaceEnv(task="PickPlaceFixedBin-v0", condition="clean", obs_type="agent_pos")
+        expert, frames = ScriptedExpert(), []
+        info = run_expert_episode(
+            env, expert, 7, 300, drift=drift,
+            on_step=lambda obs, a, p: frames.append((obs["agent_pos"][:6].copy(), a.copy(), expert.phase)),  # noqa: B023
+        )  # fmt: skip
+        env.close()
+        assert info["is_success"]
+        runs[drift is None] = frames
+    clean, drifted = runs[True], runs[False]
+    assert [f[2] for f in clean] == [f[2] for f in drifted]
+    assert all(np.array_equal(c[1], d[1]) for c, d in zip(clean, drifted, strict=True))
+    off = {}
+    for c, d in zip(clean, drifted, strict=True):
+        off.setdefault(c[2], []).append(float(np.max(np.abs(c[0] - d[0]))))
+    assert max(off["approach"]) > 0.03 and max(off["transport"]) > 0.03, off
+    assert max(off["grasp"]) < 0.01, off["grasp"]
 
 
 def test_reward_is_the_stage_index_and_stages_are_latched_in_order():
