@@ -14,23 +14,17 @@ from collections import defaultdict
 
 import numpy as np
 
-from lerobot_condground.envs.expert import JointDrift, ScriptedExpert
+from lerobot_condground.envs.expert import JointDrift, ScriptedExpert, run_expert_episode
 from lerobot_condground.envs.pickplace_env import PickPlaceEnv
 
 
 def tool_path(env, expert, seed: int, drift: JointDrift | None) -> tuple[list, bool]:
-    obs, info = env.reset(seed=seed)
-    expert.reset(env)
+    """(phase, tool position) at every step of one expert episode, and whether it succeeded."""
     path = []
-    for _ in range(env.spec.max_episode_steps if env.spec else 300):
-        action = expert.act(obs)
-        phase = expert.phase
-        obs, _, terminated, truncated, info = env.step(
-            action if drift is None else drift(action, expert.drift_gain)
-        )
-        path.append((phase, env.tcp_pose()[0].copy()))
-        if terminated or truncated:
-            break
+    info = run_expert_episode(
+        env, expert, seed, 300, drift=drift,
+        on_step=lambda obs, action, phase: path.append((expert.phase, env.tcp_pose()[0].copy())),
+    )  # fmt: skip
     return path, bool(info["is_success"])
 
 

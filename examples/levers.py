@@ -8,9 +8,10 @@ clean layouts, paired layout by layout, with a 95 % interval and McNemar's exact
 
 Every run (baseline and each lever, each seed) trains with `condground train` on --threads torch threads,
 all at once; the lever's flags come after the CPU configuration's (lerobot_condground/core/training.py), --data
-and --flags, so a lever may train on another recording (`--lever='dart=--dataset.root=...'`). A rerun resumes unfinished runs from their last checkpoint and skips finished evaluations. Pairs
-are (seed index, checkpoint rank, layout): the k-th last checkpoint of the baseline's i-th seed against
-the k-th last of the lever's i-th seed, on the same layout. Writes one row per lever to --csv (replacing
+and --flags, so a lever may train on another recording (`--lever='dart=--dataset.root=...'`). A rerun resumes
+unfinished runs from their last checkpoint and skips finished evaluations. Pairs are (seed index, checkpoint
+rank, layout): the k-th last checkpoint of the baseline's i-th seed against the k-th last of the lever's i-th
+seed, on the same layout. Writes one row per lever to --csv (replacing
 an earlier row of the same lever and task) and every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`). With --heldout, `condground fit` of each run's last checkpoint on its first
 training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
@@ -233,16 +234,19 @@ def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    for i, (name, runs) in enumerate(rows.groupby(by, sort=False) if by else [(None, rows)]):
+    groups = list(rows.groupby(by, sort=False)) if by else [(None, rows)]
+    # Levers side by side, spread over 60 % of the gap between checkpoints however many there are.
+    gap = (rows[x].max() - rows[x].min()) / max(rows[x].nunique() - 1, 1) * 0.6 / len(groups)
+    fig, ax = plt.subplots(figsize=(7.5 if by else 6, 3.5))
+    for i, (name, runs) in enumerate(groups):
         for j, (seed, run) in enumerate(runs.groupby("seed")):
             run = run.sort_values(x)
-            ax.errorbar(run[x] + (40 * (i - 1) if by else 0), run["success"] * 100,
+            ax.errorbar(run[x] + gap * (i - (len(groups) - 1) / 2), run["success"] * 100,
                         yerr=[(run["success"] - run["ci_low"]) * 100, (run["ci_high"] - run["success"]) * 100],
                         color=f"C{i if by else j}", marker="os^v"[j % 4], capsize=2,
                         label=f"{name}, seed {seed}" if by else f"seed {seed}")  # fmt: skip
     ax.set(xlabel=xlabel, ylabel="held-out clean success (%)", title=title, ylim=(-5, 105))
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

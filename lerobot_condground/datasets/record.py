@@ -80,8 +80,8 @@ class RecordDatasetConfig(DatasetOutputConfig):
 class DriftConfig:
     # Recovery data (DART): rad of smooth random offset added to each arm joint's target the arm is sent,
     # while the frames keep the expert's target as the action (`envs.expert.JointDrift`). 0: clean
-    # demonstrations. At 0.03 the tool wanders about 1-2 cm off the expert's path between the grasp and the
-    # release; it is brought back before the gripper closes or opens.
+    # demonstrations. At 0.06 the tool moves 3-4 cm off the expert's path while the arm travels, and is
+    # brought back before the gripper closes or opens (docs/recording.md).
     std: float = 0.0
     # Seconds over which the offset stays correlated: long enough for the arm to follow it off the path.
     time_constant: float = 0.5
@@ -89,7 +89,7 @@ class DriftConfig:
 
 # Far beyond any study here, well below what fills a disk unnoticed.
 MAX_EPISODES = 100_000
-# About 6 cm at the tool: beyond it the expert's grasps and the table's edges fail more than they teach.
+# At 0.10 the expert already fails one episode in ten (docs/recording.md): beyond this, mostly failures.
 MAX_DRIFT_STD = 0.15
 
 
