@@ -19,7 +19,7 @@ import json
 import logging
 import os
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -80,7 +80,7 @@ class RecordDatasetConfig(DatasetOutputConfig):
 class DriftConfig:
     # Recovery data (DART): rad of smooth random offset added to each arm joint's target the arm is sent,
     # while the frames keep the expert's target as the action (`envs.expert.JointDrift`). 0: clean
-    # demonstrations. At 0.06 the tool moves 3-4 cm off the expert's path while the arm travels, and is
+    # demonstrations. At 0.06 the tool moves 2.6-4 cm off the expert's path while the arm travels, and is
     # brought back before the gripper closes or opens (docs/recording.md).
     std: float = 0.0
     # Seconds over which the offset stays correlated: long enough for the arm to follow it off the path.
@@ -229,7 +229,7 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         if drift["std"] != cfg.drift.std or (
             cfg.drift.std and drift["time_constant"] != cfg.drift.time_constant
         ):
-            mismatches.append(f"drift {drift} != {vars(cfg.drift)}")
+            mismatches.append(f"drift {drift} != {asdict(cfg.drift)}")
         if mismatches:
             raise ValueError(
                 f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
@@ -309,8 +309,7 @@ def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
     from lerobot_condground import __version__
 
     env = {key: getattr(cfg.env, key) for key in PROVENANCE_ENV_KEYS}
-    drift = {"std": cfg.drift.std, "time_constant": cfg.drift.time_constant}
-    payload = {"env": env, "drift": drift, "seed": cfg.seed, "version": __version__, **state}
+    payload = {"env": env, "drift": asdict(cfg.drift), "seed": cfg.seed, "version": __version__, **state}
     tmp = root / (RECORD_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=str))
     os.replace(tmp, root / RECORD_FILE)
