@@ -2,7 +2,10 @@
 
 Phases: approach, descend, grasp, lift, transport, place, release, retreat. Phase label 0 (acquire
 the object) covers approach..grasp; label 1 (transport and place) covers lift..retreat. A grasp that
-does not hold the target is retried from the approach.
+does not hold the target is retried from the approach. `take_over` starts the expert from whatever state
+a policy left the scene in (DAgger-style recovery data): the phase the world asks for next, planned from
+the measured pose; `recover` (open the gripper while rising) comes first when the gripper is closed on
+nothing or the tool is low away from the object.
 """
 
 from __future__ import annotations
@@ -16,14 +19,29 @@ from .assets import FLOOR_THICKNESS, OBJECT_HEIGHT, OBJECT_SHAPES
 from .layout import PREGRASP_MARGIN
 from .robot import InverseKinematics
 
-PHASES = ("approach", "descend", "grasp", "lift", "transport", "place", "release", "retreat", "done")
-PHASE_LABEL = {p: (0 if p in ("approach", "descend", "grasp") else 1) for p in PHASES}
+PHASES = (
+    "recover",
+    "approach",
+    "descend",
+    "grasp",
+    "lift",
+    "transport",
+    "place",
+    "release",
+    "retreat",
+    "done",
+)
+PHASE_LABEL = {p: (0 if p in ("recover", "approach", "descend", "grasp") else 1) for p in PHASES}
 SPEED = 0.35  # m/s of the tool along a segment
 YAW_SPEED = 2.5  # rad/s
 JOINT_SPEED = 1.0  # rad/s of the joint that moves most, in joint-space moves
 CARRY_HEIGHT = 0.13  # tool height while moving above the table
 RELEASE_CLEARANCE = 0.022  # object bottom above the receptacle's floor when released
 MAX_RETRIES = 2
+# Taking over: the tool counts as above a point within this distance (m) in the plane, and as low below
+# CARRY_HEIGHT by more than this.
+TAKEOVER_NEAR = 0.015
+TAKEOVER_LOW = 0.02
 
 
 def _wrap(a: float) -> float:
@@ -51,6 +69,11 @@ class WaypointExpert:
         self.env = None
 
     def reset(self, env) -> None:
+        self._measure(env, self._initial_grip())
+        self._start(self._first_phase())
+
+    def _measure(self, env, grip: float) -> None:
+        """Starts planning from the env's measured joints and tool pose."""
         self.env = env.unwrapped
         if getattr(self, "_model", None) is not self.env.model:
             self._model = self.env.model
@@ -59,9 +82,8 @@ class WaypointExpert:
         pos, rot = self.env.tcp_pose()
         self.tool_pos = pos
         self.tool_yaw = math.atan2(rot[1, 0], rot[0, 0])
-        self.grip = self._initial_grip()
+        self.grip = grip
         self.retries = 0
-        self._start(self._first_phase())
 
     def _initial_grip(self) -> float:
         return 0.0
@@ -129,6 +151,30 @@ class ScriptedExpert(WaypointExpert):
     def phase_label(self) -> int:
         return PHASE_LABEL[self.phase]
 
+    def take_over(self, env, grip: float) -> None:
+        """Goes on from the state `env` is in now (another controller drove it there, its gripper command
+        `grip`): the phase the world asks for next, planned from the measured pose."""
+        self._measure(env, float(np.clip(grip, 0.0, 1.0)))
+        obj_pos, obj_yaw = self._target()
+        self.grasp_yaw = self._grasp_yaw(obj_yaw)
+        low = self.tool_pos[2] < CARRY_HEIGHT - TAKEOVER_LOW
+        if self.env.tracker.held == 1:
+            rec = self.env.layout.target_receptacle
+            above_rec = np.linalg.norm(self.tool_pos[:2] - np.asarray(rec.xy)) < TAKEOVER_NEAR
+            self._start("place" if above_rec else "lift" if low else "transport")
+        elif self.grip > self._open_grip() + 0.05 or self.env.tracker.held:
+            self._start("recover")  # closed on nothing, or on another object
+        elif low and np.linalg.norm(self.tool_pos[:2] - obj_pos[:2]) >= TAKEOVER_NEAR:
+            self._start("recover")  # moving sideways this low would push what stands on the table
+        elif low:
+            self._start("descend")
+        else:
+            self._start("approach")
+
+    def _open_grip(self) -> float:
+        shape = OBJECT_SHAPES[self.env.layout.target_object.asset.shape]
+        return max(0.0, 1.0 - (shape.grasp_width + PREGRASP_MARGIN) / robot.GRIPPER_STROKE)
+
     @property
     def done(self) -> bool:
         return self.phase == "done"
@@ -138,7 +184,7 @@ class ScriptedExpert(WaypointExpert):
         """How much of a recording's drift (`JointDrift`) the arm carries now. Full while it moves freely;
         fading to none along the descent and the placing, so that the frames show the arm brought back onto
         the expert's path before the gripper closes or opens; none while it does."""
-        if self.phase in ("approach", "lift", "transport", "retreat"):
+        if self.phase in ("recover", "approach", "lift", "transport", "retreat"):
             return 1.0
         if self.phase in ("descend", "place"):
             return 1.0 - min(self.step_in_phase / self.seg[-1], 1.0)
@@ -162,10 +208,13 @@ class ScriptedExpert(WaypointExpert):
         self.phase = phase
         self.step_in_phase = 0
         env = self.env
-        obj_shape = OBJECT_SHAPES[env.layout.target_object.asset.shape]
-        open_grip = max(0.0, 1.0 - (obj_shape.grasp_width + PREGRASP_MARGIN) / robot.GRIPPER_STROKE)
+        open_grip = self._open_grip()
         rec = env.layout.target_receptacle
-        if phase == "approach":
+        if phase == "recover":
+            self._segment(
+                self.tool_pos + [0, 0, CARRY_HEIGHT - self.tool_pos[2]], self.tool_yaw, open_grip, speed=0.2
+            )
+        elif phase == "approach":
             obj_pos, obj_yaw = self._target()
             self.grasp_yaw = self._grasp_yaw(obj_yaw)
             self._segment(np.array([*obj_pos[:2], CARRY_HEIGHT]), self.grasp_yaw, open_grip)
@@ -225,18 +274,42 @@ class JointDrift:
 
 
 def run_expert_episode(
-    env, expert, seed: int, max_steps: int, on_step=None, drift: JointDrift | None = None
+    env,
+    expert,
+    seed: int,
+    max_steps: int,
+    on_step=None,
+    drift: JointDrift | None = None,
+    driver=None,
+    takeover_step: int = 0,
 ) -> dict:
     """One expert episode; `on_step(obs, action, phase_label)` sees every observation before its action (the
-    expert's target, also when `drift` moves the arm off it)."""
+    expert's target, also when `drift` moves the arm off it).
+
+    With a `driver` (`reset(env)`, then `driver(obs) -> action`: a policy), the driver acts for the first
+    `takeover_step` steps, unseen by `on_step`, and the expert takes over from the state it left
+    (`ScriptedExpert.take_over`). The info's `taken_over` is false when the episode ended before that."""
     obs, info = env.reset(seed=seed)
-    expert.reset(env)
-    for _ in range(max_steps):
+    if driver is None:
+        expert.reset(env)
+    else:
+        driver.reset(env)
+        grip = 0.0
+        for _ in range(takeover_step):
+            action = driver(obs)
+            grip = float(action[6])
+            obs, _, terminated, truncated, info = env.step(action)
+            if terminated or truncated:
+                return {**info, "taken_over": False}
+        expert.take_over(env, grip)
+        info = {**info, "taken_over": True}
+    for _ in range(max_steps - (takeover_step if driver is not None else 0)):
         action = expert.act(obs)
         if on_step is not None:
             on_step(obs, action, expert.phase_label)
         sent = action if drift is None else drift(action, expert.drift_gain)
-        obs, _, terminated, truncated, info = env.step(sent)
+        obs, _, terminated, truncated, step_info = env.step(sent)
+        info = {**info, **step_info}
         if terminated or truncated:
             break
     return info

@@ -66,8 +66,8 @@ def train_command(args, arm_flags: list[str], train: Path, seed: int) -> list[st
     return [
         "condground", "train", "--policy.type=act_modified", f"--policy.variant={args.variant}",
         "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), f"--batch_size={CPU_BATCH_SIZE}",
-        f"--dataset.repo_id=local/{args.task}", f"--dataset.root={args.data}", *args.flags, *arm_flags,
-        f"--steps={args.steps}", f"--save_freq={args.every}", "--log_freq=100", "--num_workers=0",
+        f"--dataset.repo_id=local/{args.task}", f"--dataset.root={args.data}", f"--steps={args.steps}",
+        f"--save_freq={args.every}", *args.flags, *arm_flags, "--log_freq=100", "--num_workers=0",
         "--wandb.enable=false", f"--seed={seed}", f"--output_dir={train}",
     ]  # fmt: skip
 
@@ -78,7 +78,7 @@ def train_all(args, arms: dict[str, list[str]]) -> None:
     for arm, flags in arms.items():
         for seed in args.seeds:
             train = run_dir(args, arm, seed)
-            if checkpoint(train, args.steps).exists():
+            if checkpoint(train, args.budget[arm][0]).exists():
                 continue
             train.parent.mkdir(parents=True, exist_ok=True)
             command = train_command(args, flags, train, seed)
@@ -86,38 +86,60 @@ def train_all(args, arms: dict[str, list[str]]) -> None:
             log.write(f"\n# {time.strftime('%F %T')} {shlex.join(command)}\n")
             log.flush()
             running.append(
-                (train, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log)
+                (
+                    train,
+                    subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env),
+                    log,
+                    args.budget[arm][0],
+                )
             )
-    for train, process, log in running:
+    for train, process, log, steps in running:
         process.wait()
         log.close()
-        if process.returncode or not checkpoint(train, args.steps).exists():
+        if process.returncode or not checkpoint(train, steps).exists():
             raise SystemExit(f"training {train.name} failed (rc {process.returncode}); see {train}.log")
 
 
-def pooled_steps(args) -> list[int]:
-    last = args.steps - args.every * (args.pool - 1)
-    if last <= 0:
-        raise SystemExit(
-            f"--pool={args.pool} checkpoints every {args.every} steps do not fit in {args.steps}"
-        )
-    return list(range(last, args.steps + 1, args.every))
+def budgets(args, arms: dict[str, list[str]]) -> dict[str, tuple[int, int]]:
+    """(steps, checkpoint interval) of each arm: --steps and --every unless its flags set --steps or
+    --save_freq (a lever may be the budget itself)."""
+    out = {}
+    for arm, flags in arms.items():
+        found = {
+            k: int(v)
+            for k, v in (f.split("=", 1) for f in flags if f.split("=", 1)[0] in ("--steps", "--save_freq"))
+        }
+        steps, every = found.get("--steps", args.steps), found.get("--save_freq", args.every)
+        if steps % every:
+            raise SystemExit(f"{arm}: --save_freq={every} does not divide --steps={steps}")
+        last = steps - every * (args.pool - 1)
+        if last <= 0:
+            raise SystemExit(
+                f"{arm}: --pool={args.pool} checkpoints every {every} steps do not fit in {steps}"
+            )
+        out[arm] = (steps, every)
+    return out
+
+
+def pooled_steps(args, arm: str) -> list[int]:
+    steps, every = args.budget[arm]
+    return list(range(steps - every * (args.pool - 1), steps + 1, every))
 
 
 def evaluate_all(args, arms: dict[str, list[str]]) -> None:
     todo = []
     for arm in arms:
         for seed in args.seeds:
-            for step in pooled_steps(args):
+            for step in pooled_steps(args, arm):
                 out = args.out / "eval" / f"{run_dir(args, arm, seed).name}" / f"{step:06d}"
                 if not (out / "results.parquet").exists():
                     todo.append((checkpoint(run_dir(args, arm, seed), step), out))
     # The last checkpoints again on the recording's own layouts (its seeds 0, 1, ...: fit or generalization?).
     for arm in arms if args.train_layouts else ():
         for seed in args.seeds:
-            out = args.out / "eval_train" / run_dir(args, arm, seed).name / f"{args.steps:06d}"
+            out = args.out / "eval_train" / run_dir(args, arm, seed).name / f"{args.budget[arm][0]:06d}"
             if not (out / "results.parquet").exists():
-                todo.append((checkpoint(run_dir(args, arm, seed), args.steps), out))
+                todo.append((checkpoint(run_dir(args, arm, seed), args.budget[arm][0]), out))
     sweep_all(args, todo)
 
 
@@ -168,21 +190,25 @@ def curves(args, arms: dict[str, list[str]]) -> None:
     unknown = set(named) - set(arms)
     if unknown:
         raise SystemExit(f"--curve names arms {sorted(unknown)}; arms: {sorted(arms)}")
-    steps = list(range(args.every, args.steps + 1, args.every))
+
+    def steps(arm):
+        total, every = args.budget[arm]
+        return range(every, total + 1, every)
+
     todo = [
         (checkpoint(run_dir(args, arm, seed), step), args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}")
-        for arm in named for seed in args.seeds for step in steps
+        for arm in named for seed in args.seeds for step in steps(arm)
     ]  # fmt: skip
     sweep_all(args, [(ckpt, out) for ckpt, out in todo if not (out / "results.parquet").exists()])
     for arm, name in named.items():
         rows = []
         for seed in args.seeds:
             log = run_dir(args, arm, seed).resolve().with_suffix(".log")  # a linked run's log is beside it
-            for step in steps:
+            for step in steps(arm):
                 frame = outcomes(args, arm, seed, step)
                 r = rate(int(frame["success"].sum()), len(frame))
                 rows.append(
-                    {"minutes": elapsed_minutes(log, step, args.steps), "steps": step,
+                    {"minutes": elapsed_minutes(log, step, args.budget[arm][0]), "steps": step,
                      "samples": step * CPU_BATCH_SIZE, "success": r["rate"], "n": r["n"], "ci_low": r["low"],
                      "ci_high": r["high"], "seed": seed}
                 )  # fmt: skip
@@ -252,12 +278,11 @@ def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str
 
 
 def analyse(args, arms: dict[str, list[str]]) -> None:
-    steps = pooled_steps(args)
     per_checkpoint, pooled = [], {}
     for arm in arms:
         columns = []
         for seed in args.seeds:
-            for step in steps:
+            for step in pooled_steps(args, arm):
                 frame = outcomes(args, arm, seed, step)
                 columns.append(frame[["layout_seed", "success"]])
                 r = rate(int(frame["success"].sum()), len(frame))
@@ -280,8 +305,8 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
             {"lever": arm, "task": args.task, "baseline_arm": args.baseline, "seeds": len(args.seeds), "n": d["n"],
              "baseline": d["rate_a"],
              "treated": d["rate_b"], "diff": d["diff"], "diff_low": d["low"], "diff_high": d["high"],
-             "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.steps,
-             "checkpoints": " ".join(map(str, steps))}
+             "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.budget[arm][0],
+             "checkpoints": " ".join(map(str, pooled_steps(args, arm)))}
         )  # fmt: skip
     merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows])
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
@@ -305,7 +330,7 @@ def fit_vs_heldout(args, arms: dict[str, list[str]]) -> None:
                     args.out
                     / folder
                     / run_dir(args, arm, seed).name
-                    / f"{args.steps:06d}"
+                    / f"{args.budget[arm][0]:06d}"
                     / "results.parquet"
                 )
                 for seed in args.seeds
@@ -313,7 +338,7 @@ def fit_vs_heldout(args, arms: dict[str, list[str]]) -> None:
             success = pd.concat(frames)["success"]
             r = rate(int(success.sum()), len(success))
             rows.append(
-                {"task": args.task, "variant": args.variant, "config": arm, "step": args.steps, "layouts": layouts,
+                {"task": args.task, "variant": args.variant, "config": arm, "step": args.budget[arm][0], "layouts": layouts,
                  "success": r["rate"], "n": r["n"], "ci_low": r["low"], "ci_high": r["high"],
                  "seeds": len(args.seeds)}
             )  # fmt: skip
@@ -334,14 +359,14 @@ def fit_all(args, arms: dict[str, list[str]]) -> None:
                 out = args.out / "fit" / run_dir(args, arm, seed).name / layouts
                 if not (out / "fit.json").exists():
                     subprocess.run(
-                        ["condground", "fit", f"--policy.path={checkpoint(run_dir(args, arm, seed), args.steps)}",
+                        ["condground", "fit", f"--policy.path={checkpoint(run_dir(args, arm, seed), args.budget[arm][0])}",
                          f"--dataset.root={root}", f"--fit.episodes={episodes}", f"--output_dir={out}",
                          "--progress=false"],
                         check=True, stdout=subprocess.DEVNULL,
                     )  # fmt: skip
                 for segment, row in json.loads((out / "fit.json").read_text())["segments"].items():
                     rows.append(
-                        {"lever": arm, "task": args.task, "seed": seed, "step": args.steps, "layouts": layouts,
+                        {"lever": arm, "task": args.task, "seed": seed, "step": args.budget[arm][0], "layouts": layouts,
                          "segment": segment, "frames": row["frames"], "l1": row["l1"], "tcp_cm": row["tcp_cm"],
                          "tcp_cm_p90": row["tcp_cm_p90"], "base_rad": row["joint_rad"][0],
                          "wrist3_rad": row["joint_rad"][5], "gripper": row["gripper"]}
@@ -362,7 +387,7 @@ def failures_all(args, arms: dict[str, list[str]]) -> None:
             todo.append((arm, seed, out))
     run_all(
         [
-            ["condground", "failures", f"--policy.path={checkpoint(run_dir(args, arm, seed), args.steps)}",
+            ["condground", "failures", f"--policy.path={checkpoint(run_dir(args, arm, seed), args.budget[arm][0])}",
              f"--env.task={args.task}", f"--env.servo={args.servo}", f"--failures.episodes={args.episodes}",
              f"--failures.seed_offset={args.seed_offset}", f"--output_dir={out}", "--progress=false"]
             for arm, seed, out in todo
@@ -374,7 +399,7 @@ def failures_all(args, arms: dict[str, list[str]]) -> None:
         result = json.loads((out / "failures.json").read_text())
         offsets = result["first_close_offset_cm"]
         rows.append(
-            {"lever": arm, "task": args.task, "seed": seed, "step": args.steps, "rollouts": result["rollouts"],
+            {"lever": arm, "task": args.task, "seed": seed, "step": args.budget[arm][0], "rollouts": result["rollouts"],
              **result["causes"], "regrasped": result["regrasped"], "stalled": result["stalled"],
              "close_offset_cm_success": offsets["success_median"], "close_offset_cm_failure": offsets["failure_median"]}
         )  # fmt: skip
@@ -428,6 +453,7 @@ def main() -> None:
     args.seeds = [int(s) for s in args.seeds.split(",")]
     args.flags = shlex.split(args.flags)
     arms = parse_levers(args.lever, args.baseline)
+    args.budget = budgets(args, arms)
     if args.stage in ("all", "train"):
         train_all(args, arms)
     if args.stage in ("all", "evaluate"):

@@ -6,6 +6,10 @@ InstrumentRouting-v0: the procedure step as phase, both cameras' segmentation, t
 the instruction of the subgoal in progress as the frame's task. Per episode, the provenance file
 `meta/condground_record.json` keeps the seed and what each segmentation label is.
 
+With `--drift.*` the arm is sent the expert's targets plus a smooth offset (DART); with `--takeover.*` a
+trained policy drives each episode first and the expert finishes it from where the policy left the scene,
+only the expert's frames recorded (DAgger). docs/recording.md says how both are made.
+
 Only successful expert episodes are kept; a failed one is retried with the next seed and counted.
 The dataset is closed after every `checkpoint_every` episodes, so a crash loses at most the episodes
 since the last checkpoint (by default only the one in flight); rerunning resumes up to
@@ -87,6 +91,19 @@ class DriftConfig:
     time_constant: float = 0.5
 
 
+@dataclass
+class TakeoverConfig:
+    # Recovery data from the states a policy reaches (DAgger by expert takeover, as in HG-DAgger): this
+    # checkpoint drives each episode for a number of steps, then the scripted expert takes over from the
+    # state it left and finishes the task (`envs.expert.ScriptedExpert.take_over`). Only the expert's frames
+    # are recorded. None: the expert from the first step.
+    policy_path: str | None = None
+    # The policy's steps before the takeover, drawn uniformly per episode from the episode's seed.
+    min_steps: int = 0
+    max_steps: int = 150
+    device: str = "cpu"
+
+
 # Far beyond any study here, well below what fills a disk unnoticed.
 MAX_EPISODES = 100_000
 # At 0.10 the expert already fails one episode in ten (docs/recording.md): beyond this, mostly failures.
@@ -98,6 +115,7 @@ class RecordConfig:
     env: CondGroundEnvConfig = field(default_factory=CondGroundEnvConfig)
     dataset: RecordDatasetConfig = field(default_factory=RecordDatasetConfig)
     drift: DriftConfig = field(default_factory=DriftConfig)
+    takeover: TakeoverConfig = field(default_factory=TakeoverConfig)
     # Episode k of a fresh dataset is tried with seed + k (and later seeds after failures).
     seed: int = 0
     # Stop with an error when the expert fails this many episodes in a row.
@@ -122,6 +140,18 @@ class RecordConfig:
                 f"--drift.std={self.drift.std} is not allowed with --env.task={ROUTING_TASK}; allowed: 0 (its "
                 "expert does not fade the drift before it grasps)"
             )
+        if self.takeover.policy_path is not None:
+            if self.env.task == ROUTING_TASK:
+                raise ValueError(
+                    f"--takeover.policy_path is not allowed with --env.task={ROUTING_TASK}; allowed: the "
+                    "pick-and-place tasks (its expert cannot take over mid-procedure)"
+                )
+            if not 0 <= self.takeover.min_steps <= self.takeover.max_steps < self.env.episode_length:
+                raise ValueError(
+                    f"--takeover.min_steps={self.takeover.min_steps} and --takeover.max_steps="
+                    f"{self.takeover.max_steps} are not allowed; allowed: 0 <= min_steps <= max_steps < "
+                    f"--env.episode_length={self.env.episode_length}"
+                )
         if self.dataset.num_episodes > MAX_EPISODES:
             raise ValueError(
                 f"--dataset.num_episodes={self.dataset.num_episodes} is not allowed; allowed: 1 to {MAX_EPISODES} "
@@ -196,7 +226,7 @@ def episode_frames(obs: dict, action: np.ndarray, phase: int, task: str) -> dict
     return frame
 
 
-def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
+def _open_dataset(cfg: RecordConfig, root: Path, features: dict, policy_hash: str | None = None):
     """Creates the dataset, or resumes an existing one after checking it was made the same way."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -205,7 +235,7 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
         info = read_json_object(root / "meta" / "info.json", "Dataset info")
         if info.get("total_episodes") == 0 and provenance_path.exists():
             _remove_empty_recording(root)
-            return _open_dataset(cfg, root, features)
+            return _open_dataset(cfg, root, features, policy_hash)
         previous = (
             read_json_object(provenance_path, "Recording provenance") if provenance_path.exists() else {}
         )
@@ -230,6 +260,13 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict):
             cfg.drift.std and drift["time_constant"] != cfg.drift.time_constant
         ):
             mismatches.append(f"drift {drift} != {asdict(cfg.drift)}")
+        takeover = previous.get("takeover", {"policy_path": None})
+        if takeover.get("policy_path") != cfg.takeover.policy_path or (
+            cfg.takeover.policy_path
+            and (takeover["min_steps"], takeover["max_steps"], takeover.get("policy_hash"))
+            != (cfg.takeover.min_steps, cfg.takeover.max_steps, policy_hash)
+        ):
+            mismatches.append(f"takeover {takeover} != {asdict(cfg.takeover) | {'policy_hash': policy_hash}}")
         if mismatches:
             raise ValueError(
                 f"{root} already holds a dataset recorded differently ({'; '.join(mismatches)}); "
@@ -305,18 +342,26 @@ def _remove_empty_recording(root: Path) -> None:
     root.rmdir()
 
 
-def _write_provenance(root: Path, cfg: RecordConfig, state: dict) -> None:
+def _write_provenance(root: Path, cfg: RecordConfig, state: dict, policy_hash: str | None) -> None:
     from lerobot_condground import __version__
 
     env = {key: getattr(cfg.env, key) for key in PROVENANCE_ENV_KEYS}
-    payload = {"env": env, "drift": asdict(cfg.drift), "seed": cfg.seed, "version": __version__, **state}
+    payload = {"env": env, "drift": asdict(cfg.drift), "seed": cfg.seed, "version": __version__}
+    if cfg.takeover.policy_path:
+        payload["takeover"] = asdict(cfg.takeover) | {"policy_hash": policy_hash}
+    payload |= state
     tmp = root / (RECORD_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=str))
     os.replace(tmp, root / RECORD_FILE)
 
 
-def record(cfg: RecordConfig) -> dict:
-    """Records until the dataset holds `num_episodes` expert episodes. Returns counts for the report."""
+def record(cfg: RecordConfig, driver=None) -> dict:
+    """Records until the dataset holds `num_episodes` expert episodes. Returns counts for the report.
+
+    driver: with --takeover.policy_path, the policy that drives each episode up to the takeover (`reset(env)`,
+    `driver(obs) -> action`, `hash`: its checkpoint's), built by the command layer."""
+    if (driver is None) != (cfg.takeover.policy_path is None):
+        raise ValueError("record() takes a driver exactly when --takeover.policy_path is set")
     import datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from tqdm import tqdm
@@ -332,7 +377,8 @@ def record(cfg: RecordConfig) -> dict:
     # Validates the condition and its layout before anything is written.
     env, expert = make_recording_env(cfg.env, cfg.dataset.labels)
     root = cfg.dataset.path()
-    dataset, previous = _open_dataset(cfg, root, features)
+    policy_hash = driver.hash if driver is not None else None
+    dataset, previous = _open_dataset(cfg, root, features, policy_hash)
     have = dataset.meta.total_episodes
     state = {
         "next_seed": previous.get("next_seed", cfg.seed),
@@ -340,11 +386,15 @@ def record(cfg: RecordConfig) -> dict:
         "episodes": previous.get("episodes", [])[:have],
         "failed_seeds": previous.get("failed_seeds", []),
     }
+    if (
+        driver is not None
+    ):  # the policy finished (or broke) the episode before the takeover: nothing to record
+        state["ended_before_takeover_seeds"] = previous.get("ended_before_takeover_seeds", [])
     if have:
         logging.info("Resuming %s: %d episodes already recorded", root, have)
     # Counts of this run only: what the closing line reports.
     run_stages: Counter = Counter()
-    attempts = successes = consecutive_failures = 0
+    attempts = successes = consecutive_failures = ended_before_takeover = 0
     bar = tqdm(
         total=cfg.dataset.num_episodes,
         initial=have,
@@ -362,6 +412,15 @@ def record(cfg: RecordConfig) -> dict:
                 if cfg.drift.std
                 else None
             )
+            takeover_step = (
+                int(
+                    np.random.default_rng([seed, 1]).integers(
+                        cfg.takeover.min_steps, cfg.takeover.max_steps + 1
+                    )
+                )
+                if driver is not None
+                else 0
+            )
             info = run_expert_episode(
                 env,
                 expert,
@@ -371,7 +430,13 @@ def record(cfg: RecordConfig) -> dict:
                     episode_frames(obs, action, phase, env.task_description)
                 ),
                 drift=drift,
+                driver=driver,
+                takeover_step=takeover_step,
             )
+            if driver is not None and not info["taken_over"]:
+                state["ended_before_takeover_seeds"].append(seed)
+                ended_before_takeover += 1
+                continue
             attempts += 1
             run_stages[int(info["stage"])] += 1
             if not info["is_success"]:
@@ -390,8 +455,11 @@ def record(cfg: RecordConfig) -> dict:
                 {"seed": seed, "task": env.task_description, "entities": env.entity_table()}
                 | ({"subgoal": env.episode} if cfg.env.task == ROUTING_TASK else {})
                 | ({"drift_largest_rad": round(drift.largest, 4)} if drift else {})
+                | ({"takeover_step": takeover_step} if driver is not None else {})
             )
-            _write_provenance(root, cfg, state)  # before the data, so a resumed run never reuses a seed
+            _write_provenance(
+                root, cfg, state, policy_hash
+            )  # before the data, so a resumed run never reuses a seed
             for frame in frames:
                 dataset.add_frame(frame)
             # LeRobot re-enables `datasets` bars after every dataset load (SuppressProgressBars).
@@ -406,7 +474,7 @@ def record(cfg: RecordConfig) -> dict:
         bar.close()
         # Whatever happened, what was saved is closed and readable.
         dataset.finalize()
-        _write_provenance(root, cfg, state)
+        _write_provenance(root, cfg, state, policy_hash)
         env.close()
     if cfg.dataset.push_to_hub:
         LeRobotDataset(cfg.dataset.repo_id, root=root).push_to_hub(private=cfg.dataset.private)
@@ -417,11 +485,14 @@ def record(cfg: RecordConfig) -> dict:
         "task": cfg.env.task,
         "root": str(root),
         "total_episodes": have,
-    }
+    } | ({"ended_before_takeover": ended_before_takeover} if driver is not None else {})
 
 
 def format_summary(result: dict) -> str:
     line = f"expert success: {result['successes']}/{result['attempts']}"
+    if "ended_before_takeover" in result:
+        ended = result["ended_before_takeover"]
+        line += f" after the takeover ({ended} episode{'' if ended == 1 else 's'} ended before it)"
     if not result["attempts"]:
         line += f" (the dataset already holds {result['total_episodes']} episodes)"
     if result.get("task") == ROUTING_TASK:

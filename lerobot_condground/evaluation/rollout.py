@@ -113,6 +113,23 @@ def actions_for(loaded: LoadedPolicy, batch: dict) -> np.ndarray:
     return action.to("cpu").numpy()
 
 
+class PolicyDriver:
+    """A policy driving one env step by step through the same steps as `run_episodes`: the driver
+    `envs.expert.run_expert_episode` hands over to the expert from (`condground record --takeover.*`)."""
+
+    def __init__(self, loaded: LoadedPolicy):
+        self.loaded = loaded
+        self.hash = loaded.hash
+        self.env = None
+
+    def reset(self, env) -> None:
+        self.env = env
+        self.loaded.policy.reset()
+
+    def __call__(self, obs: dict) -> np.ndarray:
+        return actions_for(self.loaded, policy_batch(self.loaded, [obs], [self.env]))[0]
+
+
 StepHook = Callable[[int, dict | None, list[dict], np.ndarray], None]
 
 

@@ -20,7 +20,7 @@ from lerobot_condground.core.labels import (
 )
 from lerobot_condground.core.provenance import RECORD_FILE
 from lerobot_condground.envs.assets import COLORS
-from lerobot_condground.envs.robot import MOTOR_NAMES
+from lerobot_condground.envs.robot import HOME_QPOS, MOTOR_NAMES
 
 
 def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_dataset):
@@ -216,6 +216,37 @@ def test_a_drift_recording_says_how_it_was_made_and_is_resumed_only_with_the_sam
     assert LeRobotDataset("local/dart", root=root).meta.total_episodes == 1
 
 
+def test_a_takeover_recording_keeps_the_experts_frames_from_the_policys_states(tmp_path, tiny_checkpoints):
+    """DAgger by takeover: a checkpoint drives each episode first, the expert finishes it from where the arm
+    was left, and only the expert's frames are kept; provenance names the policy, a resume needs the same."""
+    root = tmp_path / "takeover"
+    common = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/takeover", f"--dataset.root={root}",
+              "--progress=false", "--env.observation_height=96", "--env.observation_width=128", "--seed=5",
+              "--takeover.min_steps=20", "--takeover.max_steps=60"]  # fmt: skip
+    policy = f"--takeover.policy_path={tiny_checkpoints[0]}"
+    out = run_cli("condground", "record", *common, "--dataset.num_episodes=2", policy)
+    assert "after the takeover" in out.stdout, out.stdout
+    provenance = read_json(root / RECORD_FILE)
+    takeover = provenance["takeover"]
+    assert takeover["policy_path"] == str(tiny_checkpoints[0]) and len(takeover["policy_hash"]) == 16
+    steps = [e["takeover_step"] for e in provenance["episodes"]]
+    assert len(steps) == 2 and all(20 <= s <= 60 for s in steps)
+    dataset = LeRobotDataset("local/takeover", root=root)
+    home = np.array(HOME_QPOS)
+    for episode, step in zip(range(2), steps, strict=True):
+        start = dataset.meta.episodes["dataset_from_index"][episode]
+        first = dataset.hf_dataset[int(start)]["observation.state"].numpy()
+        # The policy moved the arm before the expert's first frame.
+        assert np.max(np.abs(first[:6] - home)) > 0.02
+        assert dataset.meta.episodes["length"][episode] < 300 - step + 1
+    bad = run_cli(
+        "condground", "record", *common, "--dataset.num_episodes=3",
+        f"--takeover.policy_path={tiny_checkpoints[1]}", check=False,
+    )  # fmt: skip
+    assert bad.returncode != 0 and "takeover {" in bad.stderr, bad.stderr[-2000:]
+    assert LeRobotDataset("local/takeover", root=root).meta.total_episodes == 2
+
+
 def test_bad_record_flags_fail_before_any_work(tmp_path):
     root = tmp_path / "never"
     for flag, fragment in (
@@ -227,6 +258,14 @@ def test_bad_record_flags_fail_before_any_work(tmp_path):
         (
             "--drift.std=0.03 --env.task=InstrumentRouting-v0",
             "not allowed with --env.task=InstrumentRouting-v0",
+        ),
+        (
+            "--takeover.policy_path=ckpt --takeover.max_steps=300",
+            "--takeover.max_steps=300 are not allowed; allowed: 0 <= min_steps <= max_steps < --env.episode_length=300",
+        ),
+        (
+            "--takeover.policy_path=ckpt --env.task=InstrumentRouting-v0",
+            "--takeover.policy_path is not allowed with --env.task=InstrumentRouting-v0",
         ),
     ):
         out = run_cli("condground", "record", *flag.split(), f"--dataset.root={root}", check=False)
