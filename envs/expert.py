@@ -69,6 +69,7 @@ class WaypointExpert:
         self.env = None
 
     def reset(self, env) -> None:
+        self.env = env.unwrapped  # what the initial grip depends on
         self._measure(env, self._initial_grip())
         self._start(self._first_phase())
 

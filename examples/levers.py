@@ -11,7 +11,8 @@ all at once; the lever's flags come after the CPU configuration's (lerobot_condg
 and --flags, so a lever may train on another recording (`--lever='dart=--dataset.root=...'`). A rerun resumes
 unfinished runs from their last checkpoint and skips finished evaluations. Pairs are (seed index, checkpoint
 rank, layout): the k-th last checkpoint of the baseline's i-th seed against the k-th last of the lever's i-th
-seed, on the same layout. Writes one row per lever to --csv (replacing an earlier row of the same lever and
+seed, on the same layout. A lever whose flags set `--steps` and `--save_freq` is a budget: its own last
+checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv (replacing an earlier row of the same lever and
 task) and every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`). With --heldout, `condground fit` of each run's last checkpoint on its first
 training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
