@@ -264,13 +264,14 @@ def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str
     groups = list(rows.groupby(by, sort=False)) if by else [(None, rows)]
     # Levers side by side, spread over 60 % of the gap between checkpoints however many there are.
     gap = (rows[x].max() - rows[x].min()) / max(rows[x].nunique() - 1, 1) * 0.6 / len(groups)
-    fig, ax = plt.subplots(figsize=(7.5 if by else 6, 3.5))
+    entries = sum(run["seed"].nunique() for _, run in groups)
+    fig, ax = plt.subplots(figsize=(7.5 if by else 6, max(3.5, 0.15 * entries + 0.5)))  # room for the legend
     for i, (name, runs) in enumerate(groups):
         for j, (seed, run) in enumerate(runs.groupby("seed")):
             run = run.sort_values(x)
             ax.errorbar(run[x] + gap * (i - (len(groups) - 1) / 2), run["success"] * 100,
                         yerr=[(run["success"] - run["ci_low"]) * 100, (run["ci_high"] - run["success"]) * 100],
-                        color=f"C{i if by else j}", marker="os^v"[j % 4], capsize=2,
+                        color=plt.cm.tab20(i % 20) if by else f"C{j}", marker="os^v"[j % 4], capsize=2,
                         label=f"{name}, seed {seed}" if by else f"seed {seed}")  # fmt: skip
     ax.set(xlabel=xlabel, ylabel="held-out clean success (%)", title=title, ylim=(-5, 105))
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
