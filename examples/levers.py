@@ -12,8 +12,8 @@ and --flags, so a lever may train on another recording (`--lever='dart=--dataset
 unfinished runs from their last checkpoint and skips finished evaluations. Pairs are (seed index, checkpoint
 rank, layout): the k-th last checkpoint of the baseline's i-th seed against the k-th last of the lever's i-th
 seed, on the same layout. A lever whose flags set `--steps` and `--save_freq` is a budget: its own last
-checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv (replacing an earlier row of the same lever and
-task) and every checkpoint's rate beside it
+checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv
+(replacing an earlier row of the same lever and task) and every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`). With --heldout, `condground fit` of each run's last checkpoint on its first
 training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
@@ -104,13 +104,13 @@ def train_all(args, arms: dict[str, list[str]]) -> None:
 def budgets(args, arms: dict[str, list[str]]) -> dict[str, tuple[int, int]]:
     """(steps, checkpoint interval) of each arm: --steps and --every unless its flags set --steps or
     --save_freq (a lever may be the budget itself)."""
+    parser = argparse.ArgumentParser(allow_abbrev=False)
+    parser.add_argument("--steps", type=int, default=args.steps)
+    parser.add_argument("--save_freq", type=int, default=args.every)
     out = {}
     for arm, flags in arms.items():
-        found = {
-            k: int(v)
-            for k, v in (f.split("=", 1) for f in flags if f.split("=", 1)[0] in ("--steps", "--save_freq"))
-        }
-        steps, every = found.get("--steps", args.steps), found.get("--save_freq", args.every)
+        budget = parser.parse_known_args(flags)[0]  # the last of repeated flags wins, as in draccus
+        steps, every = budget.steps, budget.save_freq
         if steps % every:
             raise SystemExit(f"{arm}: --save_freq={every} does not divide --steps={steps}")
         last = steps - every * (args.pool - 1)

@@ -386,9 +386,8 @@ def record(cfg: RecordConfig, driver=None) -> dict:
         "episodes": previous.get("episodes", [])[:have],
         "failed_seeds": previous.get("failed_seeds", []),
     }
-    if (
-        driver is not None
-    ):  # the policy finished (or broke) the episode before the takeover: nothing to record
+    if driver is not None:
+        # Episodes the policy finished (or broke) before the takeover: nothing to record.
         state["ended_before_takeover_seeds"] = previous.get("ended_before_takeover_seeds", [])
     if have:
         logging.info("Resuming %s: %d episodes already recorded", root, have)
@@ -412,15 +411,10 @@ def record(cfg: RecordConfig, driver=None) -> dict:
                 if cfg.drift.std
                 else None
             )
-            takeover_step = (
-                int(
-                    np.random.default_rng([seed, 1]).integers(
-                        cfg.takeover.min_steps, cfg.takeover.max_steps + 1
-                    )
-                )
-                if driver is not None
-                else 0
-            )
+            takeover_step = 0
+            if driver is not None:
+                rng = np.random.default_rng([seed, 1])
+                takeover_step = int(rng.integers(cfg.takeover.min_steps, cfg.takeover.max_steps + 1))
             info = run_expert_episode(
                 env,
                 expert,
@@ -457,9 +451,8 @@ def record(cfg: RecordConfig, driver=None) -> dict:
                 | ({"drift_largest_rad": round(drift.largest, 4)} if drift else {})
                 | ({"takeover_step": takeover_step} if driver is not None else {})
             )
-            _write_provenance(
-                root, cfg, state, policy_hash
-            )  # before the data, so a resumed run never reuses a seed
+            # Before the data, so a resumed run never reuses a seed.
+            _write_provenance(root, cfg, state, policy_hash)
             for frame in frames:
                 dataset.add_frame(frame)
             # LeRobot re-enables `datasets` bars after every dataset load (SuppressProgressBars).
