@@ -14,7 +14,8 @@ rank, layout): the k-th last checkpoint of the baseline's i-th seed against the 
 seed, on the same layout. A lever whose flags set `--steps` and `--save_freq` is a budget: its own last
 checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv
 (replacing an earlier row of the same lever and task) and every checkpoint's rate beside it
-(`<csv stem>_checkpoints.csv`). With --heldout, `condground fit` of each run's last checkpoint on its first
+(`<csv stem>_checkpoints.csv`) and prints each arm's pooled rate; without --lever the baseline is measured
+alone. With --heldout, `condground fit` of each run's last checkpoint on its first
 training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
 seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
@@ -310,14 +311,19 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
              "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.budget[arm][0],
              "checkpoints": " ".join(map(str, pooled_steps(args, arm)))}
         )  # fmt: skip
-    merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows])
+    if rows:
+        merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows])
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, arms)
     plot_success(
         mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),
         "step", "training steps", args.task, by="lever",
     )  # fmt: skip
-    print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
+    for arm, columns in pooled.items():
+        r = rate(sum(int(c["success"].sum()) for c in columns), sum(len(c) for c in columns))
+        print(f"{arm}: {r['rate']:.1%} [{r['low']:.1%}, {r['high']:.1%}] of {r['n']} pooled rollouts")
+    if rows:
+        print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
     if args.train_layouts:
         fit_vs_heldout(args, arms)
 
@@ -450,8 +456,6 @@ def main() -> None:
         "--curve", action="append", default=[], help="ARM:NAME: the curve stage writes <task>_<NAME>.csv"
     )
     args = parser.parse_args()
-    if not args.lever and args.stage in ("all", "analyse"):
-        parser.error("give at least one --lever=NAME=FLAGS to compare with the baseline")
     args.seeds = [int(s) for s in args.seeds.split(",")]
     args.flags = shlex.split(args.flags)
     arms = parse_levers(args.lever, args.baseline)

@@ -127,6 +127,15 @@ def _literal(arg: str) -> str:
     return f"{key}={value!r}" if sep and key.startswith("--") and _SEXAGESIMAL.fullmatch(value) else arg
 
 
+def _flagged(message: str, args: list[str]) -> str:
+    """A nested config's own check names its field ("prob=2.0 is not allowed"): prefixed with the flag's group
+    ("--copy_paste.prob=2.0 ...") when exactly one flag given sets a field of that name."""
+    field = re.match(r"(\w+)=", message)
+    flags = {arg.partition("=")[0] for arg in args if arg.startswith("--") and "." in arg.partition("=")[0]}
+    groups = {flag.rpartition(".")[0] for flag in flags if field and flag.rpartition(".")[2] == field[1]}
+    return f"{groups.pop()}.{message}" if len(groups) == 1 else message
+
+
 def _parse(script, args: list[str], prog: str):
     """The command's config. argparse answers an unknown flag with the whole usage (every flag) and exits:
     only its last line, the error, is kept, with where to find the flags."""
@@ -136,6 +145,10 @@ def _parse(script, args: list[str], prog: str):
         with contextlib.redirect_stderr(captured):
             parse = getattr(script, "parse", None)
             return parse(args) if parse else draccus.parse(script.Config, args=args, prog=prog)
+    except draccus.utils.ParsingError as err:
+        if isinstance(err, draccus.utils.DecodingError):
+            raise
+        raise ValueError(_flagged(_message(err), args)) from err
     except SystemExit as stop:
         if stop.code != 2:
             raise

@@ -67,7 +67,7 @@ def test_refuses_bad_input(recorded_dataset, tmp_path, capsys):
     assert _augment(*source, *out, "--copy_paste.camera_key=observation.images.wrist") == 2
     assert "observation.images.top" in capsys.readouterr().err
     assert _augment(*source, *out, "--copy_paste.prob=2") == 2
-    assert "prob=2.0 is not allowed" in capsys.readouterr().err
+    assert "--copy_paste.prob=2.0 is not allowed" in capsys.readouterr().err
     # A dataset without segmentation cannot be augmented.
     plain = tmp_path / "plain"
     ds = LeRobotDataset.create(
