@@ -15,8 +15,8 @@ seed, on the same layout. A lever whose flags set `--steps` and `--save_freq` is
 checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv
 (replacing an earlier row of the same lever and task) and every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`) and prints each arm's pooled rate; without --lever the baseline is measured
-alone. With --heldout, `condground fit` of each run's last checkpoint on its first
-training demonstrations and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
+alone. With --heldout, `condground fit` of each run's last checkpoint on its first training demonstrations
+and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
 seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
 `condground failures` classifies each failed rollout of each run's last checkpoint on the held-out layouts
