@@ -3,7 +3,7 @@ step budget, several training seeds each, the last checkpoints of every run pool
 clean layouts, paired layout by layout, with a 95 % interval and McNemar's exact p.
 
     python examples/levers.py --task=PickPlaceFixedBin-v0 --data=outputs/levers/data/PickPlaceFixedBin-v0 \\
-        --lever='cosine=--policy.scheduler_name=cosine' --seeds=0,1 --steps=9000 --every=1500 \\
+        --lever='cosine=--policy.scheduler_name=cosine' --seeds=0,1 --steps=12000 --every=2000 \\
         --out=outputs/levers --csv=docs/learning-curve/v2/levers.csv
 
 Every run (baseline and each lever, each seed) trains with `condground train` on --threads torch threads,
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from lerobot_condground.core.training import CPU_BATCH_SIZE, policy_flags
+from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import paired_difference, rate
 
@@ -431,8 +431,8 @@ def main() -> None:
         "lever an earlier wave adopted, whose runs it reuses)",
     )
     parser.add_argument("--seeds", default="0,1")
-    parser.add_argument("--steps", type=int, default=9000)
-    parser.add_argument("--every", type=int, default=1500)
+    parser.add_argument("--steps", type=int, default=CPU_STEPS, help="the configuration's budget by default")
+    parser.add_argument("--every", type=int, default=2000)
     parser.add_argument("--pool", type=int, default=3, help="last checkpoints of each run pooled")
     parser.add_argument("--episodes", type=int, default=50, help="held-out layouts per checkpoint")
     parser.add_argument("--seed_offset", type=int, default=1_000_000, help="layouts (the sweep's default)")

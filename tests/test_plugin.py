@@ -1,3 +1,4 @@
+import json
 import subprocess
 import sys
 from importlib.metadata import distribution
@@ -6,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from helpers import run_cli
+from lerobot_condground.core.training import CPU_DRIFT_STD, amp_flags
 from lerobot_condground.evaluation.results import read_table
 
 
@@ -136,6 +138,17 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
     assert (
         tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "policy_preprocessor.json"
     ).exists()
+    # Task 1 is recorded at the configuration's drift (recovery data), Task 2 clean; trained at its precision.
+    datasets = tmp_path / "datasets"
+    provenance = {
+        task: json.loads((datasets / task / "meta" / "condground_record.json").read_text())["drift"]["std"]
+        for task in ("PickPlaceFixedBin-v0", "PickPlaceRandomBin-v0")
+    }
+    assert provenance == {"PickPlaceFixedBin-v0": CPU_DRIFT_STD, "PickPlaceRandomBin-v0": 0.0}
+    trained = json.loads(
+        (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text()
+    )
+    assert trained["use_amp"] == bool(amp_flags())
 
     # It ends with the diagnosis suite and its report; the stock CLI rebuilds the report from the outputs.
     diagnosis = tmp_path / "diagnosis"
@@ -196,6 +209,7 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
             "unrecognized arguments: --bogus=1; `condground bench --help` lists the flags",
         ),
         (["quickstart", "--train.episodes=0"], "--train.episodes=0 is not allowed"),
+        (["quickstart", "--train.drift_std=0.5"], "--train.drift_std=0.5 is not allowed; allowed: 0 (clean)"),
         (["quickstart", "--output_dir="], "--output_dir is empty"),
         (["quickstart", "--diagnosis.workers=0"], "--diagnosis.workers=0 is not allowed"),
     ],

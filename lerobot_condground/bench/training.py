@@ -9,7 +9,8 @@ forward, backward, gradient clipping, AdamW. Every policy trains on its own load
 - stock ACT with the same settings (its own backbone: torchvision's ResNet-18 with frozen batch norm);
 - `full` without the frame cache (`lerobot-train`): the cache's own speed-up, same model;
 - `full` on today's path: LeRobot's defaults for what the configuration changes (full-width ResNet-18
-  with frozen batch norm, the CVAE), no frame cache.
+  with frozen batch norm, the CVAE), no frame cache;
+- `standard` under bf16 autocast, where the configuration turns it on (`core.training.amp_flags`: AMX).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from lerobot_condground.core.configs import check_at_least
-from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_POLICY
+from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_POLICY, amp_flags
 from lerobot_condground.datasets.frame_cache import FrameCache
 from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
 
@@ -60,6 +61,8 @@ def _configs(cfg: TrainBenchConfig, features: dict) -> dict:
     configs = {name: ACTModifiedConfig(variant=name, **policy) for name in VARIANTS}
     configs["full_uncached"] = ACTModifiedConfig(variant="full", **policy)
     configs["full_plain"] = ACTModifiedConfig(variant="full", **(policy | PLAIN))
+    if amp_flags():
+        configs["standard_bf16"] = ACTModifiedConfig(variant="standard", use_amp=True, **policy)
     # Stock ACT takes the configuration's fields it has (not the narrow backbone, its norm or the schedule).
     stock = {k: v for k, v in policy.items() if k in {f.name for f in dataclasses.fields(ACTConfig)}}
     inputs = {  # stock ACT takes state and cameras; the label strings stay in the batch, unread
@@ -105,7 +108,9 @@ def _trainer(policy_cfg, meta, repo_id, root, batch_size, split: dict[str, float
         loaded = time.perf_counter()
         batch = preprocessor(batch)
         processed = time.perf_counter()
-        loss, _ = policy.forward(batch)
+        # as lerobot-train's update step: forward under autocast, backward and AdamW outside it
+        with torch.autocast("cpu", enabled=policy_cfg.use_amp):
+            loss, _ = policy.forward(batch)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
         optimizer.step()
@@ -160,7 +165,15 @@ def bench_training(repo_id: str, root: str, cfg: TrainBenchConfig, rounds: int) 
         torch.set_num_threads(threads)
 
     median = {name: statistics.median(values) for name, values in rates.items()}
-    return {
+    bf16 = {}
+    if "standard_bf16" in rates:
+        bf16 = {
+            "train_samples_per_s_standard_bf16": median["standard_bf16"],
+            "train_bf16_speedup": statistics.median(
+                b / f for b, f in zip(rates["standard_bf16"], rates["standard"], strict=True)
+            ),
+        }
+    return bf16 | {
         "train_threads": cfg.threads,
         "train_batch_size": cfg.batch_size,
         "train_samples_per_s": {name: median[name] for name in VARIANTS},

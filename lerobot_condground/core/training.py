@@ -9,11 +9,17 @@ against the constant rate on Task 1, two seeds each, three late checkpoints pool
 rollouts, +6.7 points [+0.8, +12.5] (McNemar p = 0.033; docs/learning-curve/v2/). So `--steps` must be the
 run's real budget. No dropout (ACT's default is 0.1): against the cosine configuration, same protocol,
 +16.0 points [+9.4, +22.5] (p = 4e-6): the policy underfits, and dropout regularizes what it cannot spare.
+It learns from 100 demonstrations recorded with a 0.06 rad joint drift (DART, `condground record
+--drift.std`): +16.7 points [+9.8, +23.3] against clean demonstrations (p = 4e-6), and trains 12000 steps:
++17.3 points [+11.1, +23.4] against 6000 (p = 1e-7), while 20000 add +0.3 [-5.6, +6.2] (p = 1.0); Task 1
+`standard` then succeeds 70.3 % [64.9, 75.2] of 300 held-out rollouts. Recovery data are not in the paper.
 The quickstart, the learning-curve example, `reproduce --preset=cpu` and the benchmark
 all read it from here.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 # Frame size the configuration was measured at (condground record --env.observation_height/width).
 CPU_FRAME_SIZE = (96, 128)
@@ -35,6 +41,22 @@ CPU_POLICY = {
     "dropout": 0.0,
 }
 CPU_BATCH_SIZE = 16
+# The step budget where Task 1's held-out success stops rising (the cosine schedule ends there).
+CPU_STEPS = 12_000
+# Demonstrations per task, and the drift (rad, `--drift.std`) they are recorded with.
+CPU_EPISODES = 100
+CPU_DRIFT_STD = 0.06
+
+
+def amp_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> list[str]:
+    """bf16 autocast where the CPU has AMX tiles: a training step 1.25 times as fast as fp32 there
+    (`condground bench`, docs/measurements.md); without them (AVX2) a step under autocast was 23 times slower. Every
+    `act_modified` loss term stays within bf16 rounding of fp32 (tested), so this is a speed setting."""
+    try:
+        flags = cpuinfo.read_text()
+    except OSError:  # not Linux: no way to tell, fp32 is never the slow choice
+        return []
+    return ["--policy.use_amp=true"] if " amx_bf16" in flags else []
 
 
 def policy_flags() -> list[str]:

@@ -15,7 +15,14 @@ from pathlib import Path
 from lerobot_condground.core.conditions import TASKS, check_task
 from lerobot_condground.core.configs import check_at_least, comma_items, usable_cores
 from lerobot_condground.core.paper import METHODS, TABLE2_COLUMN
-from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_FRAME_SIZE, policy_flags
+from lerobot_condground.core.training import (
+    CPU_BATCH_SIZE,
+    CPU_DRIFT_STD,
+    CPU_EPISODES,
+    CPU_FRAME_SIZE,
+    CPU_STEPS,
+    policy_flags,
+)
 from lerobot_condground.core.ur3e import check_servo
 
 VARIANT_ORDER = ("standard", "full", "augmentation", "augmentation_attention")
@@ -24,18 +31,19 @@ VARIANT_ORDER = ("standard", "full", "augmentation", "augmentation_attention")
 # flags, before --train.extra_flags.
 PRESETS: dict[str, dict] = {
     # What fits the 2-core CPU machine in a few sessions: the CPU training configuration
-    # (lerobot_condground/core/training.py) at the steps where its Task 1 curve peaked, one training seed,
+    # (lerobot_condground/core/training.py: its recovery data and step budget), one training seed,
     # the conditions that carry the paper's claims, 2 x 50 rollouts (95 % intervals of about +-10 points).
     "cpu": {
         "tasks": "PickPlaceRandomBin-v0,PickPlaceFixedBin-v0",
-        "record.episodes": 100,
+        "record.episodes": CPU_EPISODES,
+        "record.drift_std": CPU_DRIFT_STD,
         "record.observation_height": CPU_FRAME_SIZE[0],
         "record.observation_width": CPU_FRAME_SIZE[1],
         "train.variants": ",".join(VARIANT_ORDER),
         "train.seeds": 1,
-        "train.steps": 9000,
+        "train.steps": CPU_STEPS,
         "train.batch_size": CPU_BATCH_SIZE,
-        "train.save_freq": 1500,
+        "train.save_freq": 2000,
         "train.num_workers": 0,
         "train.device": "cpu",
         "eval.conditions": "clean,full_mixed,object_color_3,receptacle_shape_2,object_neither_3",
@@ -54,6 +62,7 @@ PRESETS: dict[str, dict] = {
     "paper": {
         "tasks": "PickPlaceRandomBin-v0,PickPlaceFixedBin-v0",
         "record.episodes": 100,
+        "record.drift_std": 0.0,  # the paper's clean demonstrations
         "record.observation_height": 240,
         "record.observation_width": 320,
         "train.variants": ",".join(VARIANT_ORDER),
@@ -100,8 +109,9 @@ REPORT_S = 60.0
 
 @dataclass
 class RecordSettings:
-    # Clean expert demonstrations per task.
+    # Expert demonstrations per task, recorded with this joint drift (rad, record's --drift.std; 0: clean).
     episodes: int | None = None
+    drift_std: float | None = None
     observation_height: int | None = None
     observation_width: int | None = None
 
@@ -209,7 +219,7 @@ class ReproduceConfig:
         self.condition_lists()
 
     def _check_stage_limits(self) -> None:
-        from lerobot_condground.datasets.record import MAX_EPISODES
+        from lerobot_condground.datasets.record import MAX_DRIFT_STD, MAX_EPISODES
         from lerobot_condground.envs.arm_env import check_resolution
         from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT
 
@@ -225,6 +235,11 @@ class ReproduceConfig:
                 raise ValueError(
                     f"{flag}={value} is not allowed; allowed: 1 to {limit} (the stage's own limit)"
                 )
+        if not 0.0 <= self.record.drift_std <= MAX_DRIFT_STD:
+            raise ValueError(
+                f"--record.drift_std={self.record.drift_std} is not allowed; allowed: 0 (clean) to "
+                f"{MAX_DRIFT_STD} rad (the stage's own limit)"
+            )
 
     def task_list(self) -> list[str]:
         return _split(self.tasks, "--tasks", TASKS)
@@ -332,6 +347,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
     per_condition = cfg.eval.seeds * cfg.eval.n_episodes
     stages: list[Stage] = []
     recorded: set[str] = set()
+    demos = f"{cfg.record.drift_std} rad drift" if cfg.record.drift_std else "clean"
     for task, variant in pairs:
         if task not in recorded:
             recorded.add(task)
@@ -339,7 +355,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
                 Stage(
                     f"datasets/{task}", "record", (),
                     cfg.record.episodes * RECORD_CORE_S_PER_EPISODE / min(cores, 2),
-                    f"{cfg.record.episodes} clean demonstrations", task=task,
+                    f"{cfg.record.episodes} demonstrations, {demos}", task=task,
                 )
             )  # fmt: skip
         samples = cfg.train.steps * cfg.train.batch_size

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from lerobot_condground.core.configs import usable_cores
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import versions
+from lerobot_condground.core.training import amp_flags
 from lerobot_condground.core.ur3e import SERVO_BEFORE_THE_SETTING
 from lerobot_condground.experiments.plan import ReproduceConfig, Stage, checkpoint_dir, makespan, plan
 
@@ -56,15 +57,18 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
             f"--env.servo={cfg.env.servo}", f"--env.observation_height={cfg.record.observation_height}",
             f"--env.observation_width={cfg.record.observation_width}",
             f"--dataset.repo_id=local/{task}", f"--dataset.root={here}",
-            f"--dataset.num_episodes={cfg.record.episodes}", "--progress=false",
+            f"--dataset.num_episodes={cfg.record.episodes}", f"--drift.std={cfg.record.drift_std}",
+            "--progress=false",
         ]  # fmt: skip
     if stage.kind == "train":
         last = here / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if last.is_file():  # LeRobot's own resume: model, optimizer, scheduler, step and data order
             return [_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
         device = [f"--policy.device={cfg.train.device}"] if cfg.train.device else []
+        # bf16 where this CPU runs it faster (core.training.amp_flags): a speed setting, so not pinned
+        precision = amp_flags() if cfg.train.device == "cpu" else []
         return [
-            _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device,
+            _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device, *precision,
             "--policy.push_to_hub=false", *cfg.policy_flags(), f"--dataset.repo_id=local/{task}",
             f"--dataset.root={out / 'datasets' / task}", f"--batch_size={cfg.train.batch_size}",
             f"--steps={cfg.train.steps}", f"--save_freq={cfg.train.save_freq}",
@@ -122,6 +126,7 @@ def check_same_settings(cfg: ReproduceConfig) -> None:
     if path.exists():
         previous = read_json_object(path, "Reproduction manifest").get("settings", {})
         previous.setdefault("env", {"servo": SERVO_BEFORE_THE_SETTING})  # written before the setting existed
+        previous.setdefault("record", {}).setdefault("drift_std", 0.0)  # likewise: clean demonstrations
         diffs = _differences(previous, settings)
         if diffs:
             raise ValueError(

@@ -1,6 +1,7 @@
 import json
 
 from helpers import run_cli
+from lerobot_condground.core.training import amp_flags
 
 
 def test_bench_json_reports_every_figure():
@@ -65,3 +66,8 @@ def test_bench_json_reports_every_figure():
     assert result["train_threads"] == 1 and result["train_batch_size"] == 2
     split = result["train_step_split_s"]["full"]
     assert split["data"] > 0 and split["preprocess"] > 0 and split["update"] > 0
+    # bf16 autocast is timed beside fp32 exactly where the configuration turns it on
+    if amp_flags():
+        assert result["train_samples_per_s_standard_bf16"] > 0 and result["train_bf16_speedup"] > 0
+    else:
+        assert "train_bf16_speedup" not in result

@@ -51,6 +51,9 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     assert "diagnose/PickPlaceRandomBin-v0/augmentation/seed0" in text
     assert "probe/PickPlaceFixedBin-v0/full/seed0" in text and "diagnose/PickPlaceFixedBin" not in text
     assert "estimated time left:" in text and "extra_flags" not in text
+    # the CPU configuration's recovery data and budget (core.training)
+    assert "datasets/PickPlaceRandomBin-v0" in text and "100 demonstrations, 0.06 rad drift" in text
+    assert "12000 steps (192000 samples)" in text
     assert not out.exists()
 
     assert (
@@ -91,6 +94,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         ),
         ("--jobs=0", "--jobs=0 is not allowed"),
         ("--env.servo=fast", "--env.servo='fast' is not allowed; allowed: interpolated, direct"),
+        ("--record.drift_std=0.2", "--record.drift_std=0.2 is not allowed; allowed: 0 (clean) to 0.15 rad"),
     ],
 )
 def test_bad_input_is_one_error_before_work(tmp_path, capsys, flag, message):
@@ -121,6 +125,28 @@ def test_a_reproduction_from_before_the_servo_setting_continues_only_as_it_ran(t
     with pytest.raises(ValueError, match="other settings \\(env.servo: 'direct' -> 'interpolated'\\)"):
         check_same_settings(ReproduceConfig(output_dir=str(out)))
     check_same_settings(ReproduceConfig(output_dir=str(out), env=EnvSettings(servo="direct")))
+
+
+def test_a_reproduction_from_before_recovery_data_continues_only_with_clean_demonstrations(tmp_path):
+    """Its manifest has no record.drift_std: it recorded clean demonstrations, and its stages say so."""
+    from lerobot_condground.core.training import CPU_DRIFT_STD, amp_flags
+    from lerobot_condground.experiments.plan import RecordSettings, ReproduceConfig, plan
+    from lerobot_condground.experiments.reproduce import check_same_settings, command
+
+    out = tmp_path / "run"
+    cfg = ReproduceConfig(output_dir=str(out))
+    by_kind = {stage.kind: command(cfg, stage, 1) for stage in plan(cfg)}
+    assert f"--drift.std={CPU_DRIFT_STD}" in by_kind["record"]
+    assert set(amp_flags()) <= set(by_kind["train"])  # bf16 only where this CPU runs it faster
+    settings = cfg.pinned()
+    assert settings["record"].pop("drift_std") == CPU_DRIFT_STD
+    out.mkdir()
+    (out / "reproduce.json").write_text(json.dumps({"settings": settings}))
+    with pytest.raises(ValueError, match="other settings \\(record.drift_std: 0.0 -> 0.06\\)"):
+        check_same_settings(ReproduceConfig(output_dir=str(out)))
+    clean = ReproduceConfig(output_dir=str(out), record=RecordSettings(drift_std=0.0))
+    check_same_settings(clean)
+    assert "--drift.std=0.0" in command(clean, plan(clean)[0], 1)
 
 
 def _commands(out, key: str) -> list[str]:
