@@ -52,7 +52,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     assert "probe/PickPlaceFixedBin-v0/full/seed0" in text and "diagnose/PickPlaceFixedBin" not in text
     assert "estimated time left:" in text and "extra_flags" not in text
     # the CPU configuration's recovery data and budget (core.training)
-    assert "datasets/PickPlaceRandomBin-v0" in text and "100 demonstrations, 0.06 rad drift" in text
+    assert "datasets/PickPlaceRandomBin-v0" in text and "200 demonstrations, 0.06 rad drift" in text
     assert "12000 steps (192000 samples)" in text
     assert not out.exists()
 
