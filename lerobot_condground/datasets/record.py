@@ -232,6 +232,8 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict, policy_hash: st
 
     provenance_path = root / RECORD_FILE
     if (root / "meta" / "info.json").exists():
+        if provenance_path.exists():
+            _discard_unsaved_episode(root)
         info = read_json_object(root / "meta" / "info.json", "Dataset info")
         if info.get("total_episodes") == 0 and provenance_path.exists():
             _remove_empty_recording(root)
@@ -303,17 +305,24 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict, policy_hash: st
 EMPTY_RECORDING_FILES = (
     RECORD_FILE, "meta/info.json", "meta/stats.json", "meta/tasks.parquet", "meta/episodes/chunk-*/file-*.parquet",
     "data/chunk-*/file-*.parquet", "videos/*/chunk-*/file-*.mp4", "images/*/episode-*/frame-*.png",
+    "tmp*/*.mp4",  # LeRobot encodes an episode's video in a temporary folder of the dataset, then moves it
 )  # fmt: skip
 
 
-def _ours(relative: Path) -> bool:
+# Of those, what an episode in flight may have written when the recording was killed.
+IN_FLIGHT_FILES = (
+    "meta/episodes/chunk-*/file-*.parquet", "data/chunk-*/file-*.parquet", "videos/*/chunk-*/file-*.mp4", "tmp*/*.mp4",
+)  # fmt: skip
+
+
+def _matches(relative: Path, patterns: tuple[str, ...]) -> bool:
     return any(
         len(relative.parts) == len(pattern.split("/"))
         and all(
             fnmatch.fnmatchcase(part, glob)
             for part, glob in zip(relative.parts, pattern.split("/"), strict=True)
         )
-        for pattern in EMPTY_RECORDING_FILES
+        for pattern in patterns
     )
 
 
@@ -327,7 +336,7 @@ def _remove_empty_recording(root: Path) -> None:
     strangers = sorted(
         str(p.relative_to(root)) + (" (a link)" if p.is_symlink() else "")
         for p in entries
-        if p.is_symlink() or (p.is_file() and not _ours(p.relative_to(root)))
+        if p.is_symlink() or (p.is_file() and not _matches(p.relative_to(root), EMPTY_RECORDING_FILES))
     )
     if strangers:
         raise FileExistsError(
@@ -340,6 +349,103 @@ def _remove_empty_recording(root: Path) -> None:
     for path in sorted((p for p in entries if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
         path.rmdir()
     root.rmdir()
+
+
+def _discard_unsaved_episode(root: Path) -> None:
+    """A hard kill while LeRobot saves an episode leaves it half-written: a data parquet without its footer
+    (stock LeRobot then cannot open the dataset at all), a video or its temporary folder that no episode
+    names, and `info.json` / `stats.json` that may already count it. The episodes index is written last, when
+    the dataset is closed: what it names was saved. Removes the recorder's other files of the episode in
+    flight and rebuilds the counts and statistics from the index, so the rerun resumes from the last closed
+    episode. An index that does not match the files it names is refused, nothing removed."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from lerobot.datasets.compute_stats import aggregate_stats
+    from lerobot.datasets.io_utils import write_stats
+    from lerobot.datasets.utils import DEFAULT_DATA_PATH, DEFAULT_EPISODES_PATH, DEFAULT_VIDEO_PATH
+
+    index_files = sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet"))
+    rows: list[dict] = []
+    for i, path in enumerate(index_files):
+        try:
+            rows += pq.read_table(path).to_pylist()
+        except (OSError, pa.ArrowInvalid) as err:
+            if i < len(index_files) - 1:
+                raise ValueError(
+                    f"{path} is not readable ({err}) and is not the last episodes index file: the dataset is "
+                    "damaged beyond what a killed recording leaves; nothing was removed"
+                ) from None
+            # The kill came while the dataset was being closed: its last episode is not saved (removed below).
+    if [row["episode_index"] for row in rows] != list(range(len(rows))):
+        raise ValueError(
+            f"{root}/meta/episodes does not list episodes 0..{len(rows) - 1} in order; nothing was removed"
+        )
+    info_path = root / "meta" / "info.json"
+    info = read_json_object(info_path, "Dataset info")
+    video_keys = [key for key, ft in info["features"].items() if ft.get("dtype") == "video"]
+    saved = {
+        DEFAULT_EPISODES_PATH.format(
+            chunk_index=r["meta/episodes/chunk_index"], file_index=r["meta/episodes/file_index"]
+        )
+        for r in rows
+    }
+    saved |= {
+        DEFAULT_DATA_PATH.format(chunk_index=r["data/chunk_index"], file_index=r["data/file_index"])
+        for r in rows
+    }
+    saved |= {
+        DEFAULT_VIDEO_PATH.format(
+            video_key=key,
+            chunk_index=r[f"videos/{key}/chunk_index"],
+            file_index=r[f"videos/{key}/file_index"],
+        )
+        for r in rows
+        for key in video_keys
+    }
+    missing = sorted(relative for relative in saved if not (root / relative).is_file())
+    if missing:
+        raise ValueError(
+            f"{root} names files it does not hold ({', '.join(missing[:3])}); nothing was removed"
+        )
+    for top, _, files in os.walk(root):  # no links followed
+        for path in (Path(top) / name for name in files):
+            relative = path.relative_to(root)
+            if (
+                _matches(relative, IN_FLIGHT_FILES)
+                and relative.as_posix() not in saved
+                and not path.is_symlink()
+            ):
+                path.unlink()
+                if relative.parts[0].startswith("tmp") and not any(path.parent.iterdir()):
+                    path.parent.rmdir()
+    frames = rows[-1]["dataset_to_index"] if rows else 0
+    if (info["total_episodes"], info["total_frames"]) == (len(rows), frames) and _readable(
+        root / "meta" / "stats.json"
+    ):
+        return
+    info |= {"total_episodes": len(rows), "total_frames": frames, "splits": {"train": f"0:{len(rows)}"}}
+    tmp = info_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(info, indent=4))
+    os.replace(tmp, info_path)
+    if rows:
+        write_stats(aggregate_stats([_episode_stats(row) for row in rows]), root)
+
+
+def _readable(path: Path) -> bool:
+    try:
+        json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return True
+
+
+def _episode_stats(row: dict) -> dict[str, dict[str, np.ndarray]]:
+    stats: dict[str, dict[str, np.ndarray]] = {}
+    for key, value in row.items():
+        if key.startswith("stats/"):
+            feature, stat = key.removeprefix("stats/").rsplit("/", 1)
+            stats.setdefault(feature, {})[stat] = np.asarray(value, dtype=np.float64)
+    return stats
 
 
 def _write_provenance(root: Path, cfg: RecordConfig, state: dict, policy_hash: str | None) -> None:

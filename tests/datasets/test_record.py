@@ -3,7 +3,6 @@ import os
 import shutil
 import signal
 import subprocess
-import time
 
 import numpy as np
 import pytest
@@ -142,65 +141,84 @@ def test_a_recording_that_saved_no_episode_does_not_block_the_corrected_rerun(tm
     assert LeRobotDataset("local/empty", root=root).meta.total_episodes == 1
 
 
-def test_a_killed_recording_keeps_every_finished_episode(tmp_path):
+# Runs `condground record` and SIGKILLs it at one chosen moment of saving its second episode (index 1): the
+# moments are LeRobot's own steps, wrapped in this process only, so the kill lands there on any machine.
+KILL_AT = """
+import os, signal, sys
+from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+from lerobot.datasets.dataset_writer import DatasetWriter
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot_condground.cli import main
+
+moment = sys.argv.pop(1)
+frames_seen = [0]
+
+def kill_after(owner, name, when):
+    original = getattr(owner, name)
+    def wrapped(self, *args, **kwargs):
+        if moment == name and when(self, *args):
+            os.kill(os.getpid(), signal.SIGKILL)
+        return original(self, *args, **kwargs)
+    setattr(owner, name, wrapped)
+
+def tenth_frame_of_episode_1(self, *args):
+    frames_seen[0] += self.meta.total_episodes == 1
+    return frames_seen[0] == 10
+
+kill_after(LeRobotDataset, "add_frame", tenth_frame_of_episode_1)  # images of episode 1 being written
+kill_after(DatasetWriter, "_save_episode_video", lambda self, key, index, *a: index == 1)  # its parquet open
+kill_after(LeRobotDatasetMetadata, "_save_episode_metadata", lambda self, *a: self.total_episodes == 1)
+kill_after(LeRobotDatasetMetadata, "finalize", lambda self: self.total_episodes == 2)  # counted, index unwritten
+sys.argv = ["condground", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.parametrize("moment", ["add_frame", "_save_episode_video", "_save_episode_metadata", "finalize"])
+def test_a_killed_recording_keeps_every_finished_episode(tmp_path, moment):
     root = tmp_path / "ds"
-    args = [
-        str(BIN / "condground"),
-        "record",
-        "--env.task=PickPlaceFixedBin-v0",
-        "--dataset.repo_id=local/kill",
-        f"--dataset.root={root}",
-        "--dataset.num_episodes=50",
-        "--progress=false",
-        "--env.observation_height=96",
-        "--env.observation_width=128",
-    ]
-    proc = subprocess.Popen(
-        args, env={**os.environ, "MUJOCO_GL": "egl"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    args = ["record", "--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/kill", f"--dataset.root={root}",
+            "--progress=false", "--env.observation_height=96", "--env.observation_width=128"]  # fmt: skip
+    killed = subprocess.run(
+        [str(BIN / "python"), "-c", KILL_AT, moment, *args, "--dataset.num_episodes=3"],
+        env={**os.environ, "MUJOCO_GL": "egl"},
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
-    deadline = time.time() + 300
-    try:
-        while time.time() < deadline:
-            path = root / RECORD_FILE
-            # Provenance runs one episode ahead of the data: 3 named means 2 saved and closed.
-            if path.exists() and len(read_json(path)["episodes"]) >= 3:
-                break
-            assert proc.poll() is None, "recording ended early"
-            time.sleep(0.2)
-        else:
-            pytest.fail("no checkpoint within 300 s")
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    ds = LeRobotDataset("local/kill", root=root)
-    assert ds.meta.total_episodes >= 2
-    ds[len(ds) - 1]  # the last frame decodes
-    # What a kill inside the image writer leaves: a truncated frame of the episode in flight.
-    in_flight = root / "images" / "observation.images.top" / f"episode-{ds.meta.total_episodes:06d}"
-    in_flight.mkdir(parents=True, exist_ok=True)
-    (in_flight / "frame-000999.png").write_bytes(b"\x89PNG\r\n")
-    out = run_cli(
-        "condground",
-        "record",
-        *args[2:-4],
-        "--dataset.num_episodes=" + str(ds.meta.total_episodes + 1),
-        "--env.observation_height=96",
-        "--env.observation_width=128",
-    )
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    if moment == "add_frame":
+        # What a kill inside the image writer can leave: a truncated frame of the episode in flight.
+        (root / "images" / "observation.images.top" / "episode-000001" / "frame-000999.png").write_bytes(
+            b"\x89PNG\r\n"
+        )
+    # A rerun that records nothing more leaves exactly the saved episode, readable by stock LeRobot.
+    out = run_cli("condground", *args, "--dataset.num_episodes=1")
+    assert "already holds 1 episodes" in out.stdout
+    kept = LeRobotDataset("local/kill", root=root)
+    assert kept.meta.total_episodes == 1 and kept.meta.total_frames == len(kept)
+    assert int(kept.meta.stats["action"]["count"][0]) == len(kept)  # nothing of the killed episode
+    assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.suffix in (".parquet", ".mp4")) == [
+        "data/chunk-000/file-000.parquet", "meta/episodes/chunk-000/file-000.parquet", "meta/tasks.parquet",
+        "videos/observation.images.top/chunk-000/file-000.mp4",
+    ]  # fmt: skip
+    out = run_cli("condground", *args, "--dataset.num_episodes=2")
     assert "expert success: 1/1" in out.stdout
     resumed = LeRobotDataset("local/kill", root=root)
-    total = resumed.meta.total_episodes
-    last = resumed.meta.episodes[total - 1]
-    video_frames = round(
-        (
-            last["videos/observation.images.top/to_timestamp"]
-            - last["videos/observation.images.top/from_timestamp"]
-        )
-        * resumed.fps
+    assert resumed.meta.total_episodes == 2
+    resumed[len(resumed) - 1]  # every file the dataset names opens; the last frame decodes
+    last = resumed.meta.episodes[1]
+    video = "videos/observation.images.top"
+    # No frame of the killed episode in the resumed one's video.
+    assert (
+        round((last[f"{video}/to_timestamp"] - last[f"{video}/from_timestamp"]) * resumed.fps)
+        == last["length"]
     )
-    assert video_frames == last["length"]  # no frame of the killed episode in the resumed one's video
+    assert resumed.meta.total_frames == len(resumed) and int(resumed.meta.stats["action"]["count"][0]) == len(
+        resumed
+    )
     seeds = [e["seed"] for e in read_json(root / RECORD_FILE)["episodes"]]
-    assert len(seeds) == total and len(set(seeds)) == total
+    assert len(seeds) == 2 and len(set(seeds)) == 2
 
 
 def test_a_drift_recording_says_how_it_was_made_and_is_resumed_only_with_the_same_drift(tmp_path):
