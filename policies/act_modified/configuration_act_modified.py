@@ -14,7 +14,7 @@ weight stays overridable after the preset, e.g.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot.configs.policies import PreTrainedConfig
@@ -32,7 +32,7 @@ from lerobot_condground.core.labels import (
     PROMPT_CAMERA_KEYS,
 )
 from lerobot_condground.core.trust import HUB_ID
-from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
+from lerobot_condground.processors.copy_paste import CATEGORIES, CopyPasteDistractorStep, CopyPasteParams
 
 # Learning-rate schedules of the training preset, over `--steps`: constant is ACT's (no scheduler);
 # cosine warms up linearly, then anneals to zero at the last step.
@@ -102,6 +102,7 @@ class ACTModifiedConfig(ACTConfig):
     copy_paste_max_count: int = CopyPasteParams.max_count
     copy_paste_max_occlusion: float = CopyPasteParams.max_occlusion
     copy_paste_seed: int = CopyPasteParams.seed
+    copy_paste_categories: list[str] = field(default_factory=lambda: list(CATEGORIES))
 
     # Normalization layers of the ResNet backbone: frozen_batchnorm (LeRobot's ACT, made for ImageNet
     # weights), batchnorm or groupnorm (32 groups). Trained from scratch (pretrained_backbone_weights=None),
@@ -223,6 +224,7 @@ class ACTModifiedConfig(ACTConfig):
             max_count=self.copy_paste_max_count,
             max_occlusion=self.copy_paste_max_occlusion,
             seed=self.copy_paste_seed,
+            categories=self.copy_paste_categories,
         )
 
     def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:

@@ -367,6 +367,10 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (dict(variant="standard", use_prompts=True), "use_phase_predictor"),
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
+        (
+            dict(copy_paste_categories=["same_color", "lookalike"]),
+            r"categories=\['same_color', 'lookalike'\]",
+        ),
         (dict(backbone_norm="layernorm"), "backbone_norm='layernorm'"),
         (dict(backbone_layer="layer2"), "backbone_layer='layer2'.*layer4, layer3"),
         (
