@@ -66,16 +66,16 @@ class RecordingMultiheadAttention(nn.MultiheadAttention):
             self.captured = (query, key)
         return super().forward(query, key, value, **kwargs)
 
-    def head_attention(self, head: int) -> Tensor:
-        """(B, queries, keys) softmax attention of `head` for the captured inputs, before dropout."""
+    def head_log_attention(self, head: int) -> Tensor:
+        """(B, queries, keys) log-softmax attention of `head` for the captured inputs, before dropout."""
         query, key = self.captured
         self.captured = None
-        return head_attention(self, query, key, head)
+        return head_log_attention(self, query, key, head)
 
 
-def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head: int) -> Tensor:
-    """(B, queries, keys) softmax attention of one head of any nn.MultiheadAttention (packed in_proj,
-    sequence-first inputs as ACT uses them: query (T, B, E), key (S, B, E)), before dropout."""
+def head_log_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head: int) -> Tensor:
+    """(B, queries, keys) log-softmax attention of one head of any nn.MultiheadAttention (packed in_proj,
+    sequence-first inputs as ACT uses them: query (T, B, E), key (S, B, E)), before dropout, in float32."""
     embed_dim = mha.embed_dim
     dim = embed_dim // mha.num_heads
     rows = slice(head * dim, (head + 1) * dim)
@@ -83,7 +83,21 @@ def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head:
     b_q, b_k = mha.in_proj_bias[:embed_dim][rows], mha.in_proj_bias[embed_dim : 2 * embed_dim][rows]
     q = F.linear(query, w_q, b_q)  # (T, B, d)
     k = F.linear(key, w_k, b_k)  # (S, B, d)
-    return torch.einsum("tbd,sbd->bts", q, k).div(math.sqrt(dim)).softmax(-1)
+    return torch.einsum("tbd,sbd->bts", q.float(), k.float()).div(math.sqrt(dim)).log_softmax(-1)
+
+
+def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head: int) -> Tensor:
+    """(B, queries, keys) softmax attention of one head; see `head_log_attention`."""
+    return head_log_attention(mha, query, key, head).exp()
+
+
+def grid_attention(log_attention: Tensor) -> Tensor:
+    """(B, tokens) attention over one camera's tokens, averaged over the queries and renormalized to sum to 1
+    (the paper's A), from their (B, queries, tokens) log-attention. Shifted by its maximum before `exp`: a
+    head that gives nearly all its mass to the 1D tokens leaves the camera 1e-24 of it (measured on `full`),
+    which rounds to 0, and 0/0 turned a whole training run to NaN. The shift cancels in the ratio."""
+    weights = (log_attention - log_attention.amax(dim=(1, 2), keepdim=True)).exp().mean(1)
+    return weights / weights.sum(-1, keepdim=True)
 
 
 def _norm_layer(name: str):
@@ -225,10 +239,10 @@ class ACTModified(ACT):
             h, w = feature_maps[0].shape[-2:]
             camera = list(cfg.image_features).index(cfg.attention_camera)
             start = n_1d_tokens + camera * h * w
-            attention = cross_attention.head_attention(cfg.attention_head)[:, :, start : start + h * w].mean(
-                1
-            )
-            aux["attention"] = (attention / attention.sum(-1, keepdim=True)).view(batch_size, h, w)
+            log_attention = cross_attention.head_log_attention(cfg.attention_head)[
+                :, :, start : start + h * w
+            ]
+            aux["attention"] = grid_attention(log_attention).view(batch_size, h, w)
         return actions, (mu, log_sigma_x2), aux
 
     def _latent(self, batch: dict[str, Tensor], batch_size: int):
@@ -456,6 +470,12 @@ class ACTModifiedPolicy(ACTPolicy):
             loss = loss + cfg.attention_neg_weight * on_distractors.mean()
             loss_dict["attention_on_relevant"] = on_relevant.mean().item()
             loss_dict["attention_on_distractors"] = on_distractors.mean().item()
+        if not torch.isfinite(loss):
+            terms = ", ".join(f"{key}={value:.4g}" for key, value in loss_dict.items())
+            raise FloatingPointError(
+                f"act_modified's loss is not finite ({terms}); stopped before the optimizer step would turn "
+                "every weight to NaN, so the last saved checkpoint is intact and can be resumed"
+            )
         return loss, loss_dict
 
 

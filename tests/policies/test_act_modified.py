@@ -21,6 +21,7 @@ from lerobot_condground.policies.act_modified.configuration_act_modified import 
 from lerobot_condground.policies.act_modified.modeling_act_modified import (
     ACTModifiedPolicy,
     attention_overlaps,
+    grid_attention,
     prompt_as_image,
 )
 
@@ -280,7 +281,33 @@ def test_supervised_head_attention_is_the_heads_softmax():
     mha.capture = True
     _, weights = mha(query, key, key, need_weights=True, average_attn_weights=False)
     mha.capture = False
-    torch.testing.assert_close(mha.head_attention(2), weights[:, 2])
+    torch.testing.assert_close(mha.head_log_attention(2).exp(), weights[:, 2])
+
+
+def test_grid_attention_is_the_renormalized_camera_attention_even_where_the_camera_gets_almost_none():
+    logits = torch.randn(B, CHUNK, 20)
+    camera = slice(8, 20)
+    attention = logits.softmax(-1)[:, :, camera].mean(1)
+    torch.testing.assert_close(
+        grid_attention(logits.log_softmax(-1)[:, :, camera]), attention / attention.sum(-1, keepdim=True)
+    )
+    # A head whose mass sits on the 1D tokens: the camera's share rounds to 0 and the plain ratio is 0/0.
+    logits[:, :, :8] += 200.0
+    log_attention = logits.log_softmax(-1)[:, :, camera]
+    assert log_attention.exp().sum(-1).eq(0).all()
+    expected = logits.double().softmax(-1)[:, :, camera].mean(1)  # the ratio where float64 does not underflow
+    torch.testing.assert_close(
+        grid_attention(log_attention), (expected / expected.sum(-1, keepdim=True)).float()
+    )
+
+
+def test_a_non_finite_loss_stops_training_before_the_weights_are_touched():
+    policy = make_policy(variant="full")
+    policy.train()
+    batch = make_batch()
+    batch["action"][0, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match=r"loss is not finite \(l1_loss=nan"):
+        policy(batch)
 
 
 def test_attention_loss_moves_attention_to_the_relevant_mask():
