@@ -234,14 +234,18 @@ def run_all(commands: list[list[str]], jobs: int) -> None:
                 raise SystemExit(f"failed: {shlex.join(process.args)}")
 
 
-def merge_csv(path: Path, rows: list[dict], task: str, names, column: str = "lever", fmt: str = "%.4f"):
-    """Writes `rows` to `path` in place of its earlier rows of these names on this task; returns the table."""
+def merge_csv(
+    path: Path, rows: list[dict], task: str, names, column: str = "lever", fmt: str = "%.4f", baseline=None
+):
+    """Writes `rows` to `path` in place of its earlier rows of these names on this task (and against this
+    baseline arm, when given: one lever may be paired against two baselines); returns the table."""
     table = pd.DataFrame(rows)
     if path.exists():
         old = pd.read_csv(path)
-        table = pd.concat(
-            [old[~(old["task"].eq(task) & old[column].isin(list(names)))], table], ignore_index=True
-        )
+        replaced = old["task"].eq(task) & old[column].isin(list(names))
+        if baseline is not None:
+            replaced &= old["baseline_arm"].eq(baseline)
+        table = pd.concat([old[~replaced], table], ignore_index=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(path, index=False, float_format=fmt)
     return table
@@ -312,7 +316,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
              "checkpoints": " ".join(map(str, pooled_steps(args, arm)))}
         )  # fmt: skip
     if rows:
-        merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows])
+        merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, arms)
     plot_success(
