@@ -119,21 +119,23 @@ def resolve_target(config, opts: AttentionOptions) -> AttentionTarget:
 def camera_attention(probe: ACTProbe, mha, target: AttentionTarget) -> tuple[np.ndarray, np.ndarray]:
     """After a probe forward: ((B, h, w) attention over the camera's grid summing to 1, (B,) share of the
     head's attention that fell on that camera's tokens before renormalizing)."""
-    from lerobot_condground.policies.act_modified.modeling_act_modified import head_attention
+    from lerobot_condground.policies.act_modified.modeling_act_modified import (
+        grid_attention,
+        head_log_attention,
+    )
 
     query, key = probe.query_key
-    weights = head_attention(mha, query, key, target.head).float()  # (B, queries, tokens)
+    log_weights = head_log_attention(mha, query, key, target.head)  # (B, queries, tokens)
     grids = [tuple(fm.shape[-2:]) for fm in probe.feature_maps]
     h, w = grids[target.camera_index]
     start = target.n_1d_tokens + sum(a * b for a, b in grids[: target.camera_index])
-    if start + h * w > weights.shape[-1]:
+    if start + h * w > log_weights.shape[-1]:
         raise RuntimeError(
-            f"token layout mismatch: camera grid {h}x{w} at {start} beyond {weights.shape[-1]} tokens"
+            f"token layout mismatch: camera grid {h}x{w} at {start} beyond {log_weights.shape[-1]} tokens"
         )
-    on_camera = weights[:, :, start : start + h * w].mean(1)  # (B, h*w)
-    share = on_camera.sum(-1)
-    attention = on_camera / share.clamp_min(1e-12).unsqueeze(-1)
-    return attention.view(-1, h, w).cpu().numpy(), share.cpu().numpy()
+    on_camera = log_weights[:, :, start : start + h * w]
+    share = on_camera.exp().sum(-1).mean(1)
+    return grid_attention(on_camera).view(-1, h, w).cpu().numpy(), share.cpu().numpy()
 
 
 def attention_masses(attention: np.ndarray, segmentation: np.ndarray) -> dict[str, float]:

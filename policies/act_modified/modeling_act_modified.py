@@ -83,12 +83,8 @@ def head_log_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, h
     b_q, b_k = mha.in_proj_bias[:embed_dim][rows], mha.in_proj_bias[embed_dim : 2 * embed_dim][rows]
     q = F.linear(query, w_q, b_q)  # (T, B, d)
     k = F.linear(key, w_k, b_k)  # (S, B, d)
-    return torch.einsum("tbd,sbd->bts", q.float(), k.float()).div(math.sqrt(dim)).log_softmax(-1)
-
-
-def head_attention(mha: nn.MultiheadAttention, query: Tensor, key: Tensor, head: int) -> Tensor:
-    """(B, queries, keys) softmax attention of one head; see `head_log_attention`."""
-    return head_log_attention(mha, query, key, head).exp()
+    with torch.autocast(device_type=q.device.type, enabled=False):  # autocast would run einsum in bf16
+        return torch.einsum("tbd,sbd->bts", q.float(), k.float()).div(math.sqrt(dim)).log_softmax(-1)
 
 
 def grid_attention(log_attention: Tensor) -> Tensor:

@@ -153,7 +153,7 @@ from lerobot_condground.cli import main
 moment = sys.argv.pop(1)
 frames_seen = [0]
 
-def kill_after(owner, name, when):
+def kill_before(owner, name, when):
     original = getattr(owner, name)
     def wrapped(self, *args, **kwargs):
         if moment == name and when(self, *args):
@@ -165,10 +165,10 @@ def tenth_frame_of_episode_1(self, *args):
     frames_seen[0] += self.meta.total_episodes == 1
     return frames_seen[0] == 10
 
-kill_after(LeRobotDataset, "add_frame", tenth_frame_of_episode_1)  # images of episode 1 being written
-kill_after(DatasetWriter, "_save_episode_video", lambda self, key, index, *a: index == 1)  # its parquet open
-kill_after(LeRobotDatasetMetadata, "_save_episode_metadata", lambda self, *a: self.total_episodes == 1)
-kill_after(LeRobotDatasetMetadata, "finalize", lambda self: self.total_episodes == 2)  # counted, index unwritten
+kill_before(LeRobotDataset, "add_frame", tenth_frame_of_episode_1)  # images of episode 1 being written
+kill_before(DatasetWriter, "_save_episode_video", lambda self, key, index, *a: index == 1)  # its parquet open
+kill_before(LeRobotDatasetMetadata, "_save_episode_metadata", lambda self, *a: self.total_episodes == 1)  # video in place
+kill_before(LeRobotDatasetMetadata, "finalize", lambda self: self.total_episodes == 2)  # counted, index unwritten
 sys.argv = ["condground", *sys.argv[1:]]
 main()
 """
