@@ -13,10 +13,11 @@ unfinished runs from their last checkpoint and skips finished evaluations. Pairs
 rank, layout): the k-th last checkpoint of the baseline's i-th seed against the k-th last of the lever's i-th
 seed, on the same layout. A lever whose flags set `--steps` and `--save_freq` is a budget: its own last
 checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv
-(replacing an earlier row of the same lever and task) and every checkpoint's rate beside it
-(`<csv stem>_checkpoints.csv`) and prints each arm's pooled rate; without --lever the baseline is measured
-alone. With --heldout, `condground fit` of each run's last checkpoint on its first training demonstrations
-and on the held-out recording (`<csv stem>_fit.csv`, per segment). With
+(replacing an earlier row of the same lever and task), every checkpoint's rate beside it
+(`<csv stem>_checkpoints.csv`) and every pooled rollout's outcome (`<csv stem>_rollouts.csv`, to re-pair
+after outputs/ is gone), and prints each arm's pooled rate; without --lever the baseline is measured alone.
+With --heldout, `condground fit` of each run's last checkpoint on its first training demonstrations and on
+the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
 seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
 `condground failures` classifies each failed rollout of each run's last checkpoint on the held-out layouts
@@ -285,13 +286,16 @@ def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str
 
 
 def analyse(args, arms: dict[str, list[str]]) -> None:
-    per_checkpoint, pooled = [], {}
+    per_checkpoint, pooled, per_rollout = [], {}, []
     for arm in arms:
         columns = []
         for seed in args.seeds:
             for step in pooled_steps(args, arm):
                 frame = outcomes(args, arm, seed, step)
                 columns.append(frame[["layout_seed", "success"]])
+                per_rollout.append(
+                    frame[["layout_seed", "success"]].assign(lever=arm, task=args.task, seed=seed, step=step)
+                )
                 r = rate(int(frame["success"].sum()), len(frame))
                 per_checkpoint.append(
                     {"lever": arm, "task": args.task, "seed": seed, "step": step, "success": r["rate"],
@@ -319,6 +323,14 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
         merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, arms)
+    # Every pooled rollout, so a later session can re-pair these arms after outputs/ is gone.
+    rollouts = pd.concat(per_rollout, ignore_index=True)[
+        ["lever", "task", "seed", "step", "layout_seed", "success"]
+    ]
+    merge_csv(
+        args.csv.with_name(f"{args.csv.stem}_rollouts.csv"), rollouts.astype({"success": int}).to_dict("records"),
+        args.task, arms,
+    )  # fmt: skip
     plot_success(
         mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),
         "step", "training steps", args.task, by="lever",
@@ -381,11 +393,14 @@ def fit_all(args, arms: dict[str, list[str]]) -> None:
                         {"lever": arm, "task": args.task, "seed": seed, "step": args.budget[arm][0], "layouts": layouts,
                          "segment": segment, "frames": row["frames"], "l1": row["l1"], "tcp_cm": row["tcp_cm"],
                          "tcp_cm_p90": row["tcp_cm_p90"], "base_rad": row["joint_rad"][0],
-                         "wrist3_rad": row["joint_rad"][5], "gripper": row["gripper"]}
+                         "wrist3_rad": row["joint_rad"][5], "gripper": row["gripper"],
+                         "head_camera_share_median": row["head_camera_share_median"],
+                         "head_camera_share_low": row["head_camera_share_low"], "phase_accuracy": row["phase_accuracy"]}
                     )  # fmt: skip
     mine = merge_csv(args.csv.with_name(f"{args.csv.stem}_fit.csv"), rows, args.task, arms)
     overall = mine[mine["segment"].isin(["all", "grasp"]) & mine["task"].eq(args.task)]
-    print(overall.groupby(["lever", "layouts", "segment"])[["l1", "tcp_cm", "base_rad"]].mean().to_string())
+    columns = ["l1", "tcp_cm", "base_rad", "head_camera_share_median", "phase_accuracy"]
+    print(overall.groupby(["lever", "layouts", "segment"])[columns].mean().to_string())
 
 
 def failures_all(args, arms: dict[str, list[str]]) -> None:

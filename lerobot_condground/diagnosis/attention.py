@@ -29,11 +29,16 @@ import numpy as np
 
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
 from lerobot_condground.core.provenance import command_line, versions
-from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, load_act_family
+from lerobot_condground.diagnosis.hooks import (
+    ACTProbe,
+    acting_model,
+    camera_attention,
+    load_act_family,
+    resolve_target,
+)
 
 logger = logging.getLogger(__name__)
 
-CAMERA_PREFIX = "observation.images."
 PHASE_NAMES = ("pick", "place")
 STAGE_NAMES = ("none", "pick", "lift", "place")
 CODECS = ("libx264", "mpeg4")
@@ -69,73 +74,6 @@ class AttentionConfig:
     def __post_init__(self):
         # This command's defaults for the shared groups (see core/configs.py on why not a default_factory).
         self.env.condition = self.env.condition or "full_mixed"
-
-
-# ---------------------------------------------------------------------------------------------- attention
-@dataclass
-class AttentionTarget:
-    """Which head, layer and camera grid to read, resolved against a policy config."""
-
-    head: int
-    layer: int
-    camera: str  # short name: top, wrist
-    camera_index: int
-    n_1d_tokens: int
-
-
-def resolve_target(config, opts: AttentionOptions) -> AttentionTarget:
-    n_heads, n_layers = config.n_heads, config.n_decoder_layers
-    head = opts.head if opts.head is not None else int(getattr(config, "attention_head", 0) or 0)
-    if isinstance(head, bool) or not 0 <= head < n_heads:
-        raise ValueError(
-            f"--attention.head={head} is out of range; allowed: 0..{n_heads - 1} (the policy has n_heads={n_heads})"
-        )
-    if isinstance(opts.layer, bool) or not -n_layers <= opts.layer < n_layers:
-        raise ValueError(
-            f"--attention.layer={opts.layer} is out of range; allowed: {-n_layers}..{n_layers - 1} "
-            f"(the policy has n_decoder_layers={n_layers})"
-        )
-    cameras = [key[len(CAMERA_PREFIX) :] for key in config.image_features]
-    camera = opts.camera
-    if camera is None:
-        default = getattr(config, "attention_camera", None)
-        camera = (
-            default[len(CAMERA_PREFIX) :] if default and default.startswith(CAMERA_PREFIX) else cameras[0]
-        )
-    if camera not in cameras:
-        raise ValueError(
-            f"--attention.camera={camera!r} is not a camera of the policy; allowed: {', '.join(cameras)}"
-        )
-    n_1d = 1 + (config.robot_state_feature is not None) + (config.env_state_feature is not None)
-    return AttentionTarget(
-        head=head,
-        layer=opts.layer % n_layers,
-        camera=camera,
-        camera_index=cameras.index(camera),
-        n_1d_tokens=n_1d,
-    )
-
-
-def camera_attention(probe: ACTProbe, mha, target: AttentionTarget) -> tuple[np.ndarray, np.ndarray]:
-    """After a probe forward: ((B, h, w) attention over the camera's grid summing to 1, (B,) share of the
-    head's attention that fell on that camera's tokens before renormalizing)."""
-    from lerobot_condground.policies.act_modified.modeling_act_modified import (
-        grid_attention,
-        head_log_attention,
-    )
-
-    query, key = probe.query_key
-    log_weights = head_log_attention(mha, query, key, target.head)  # (B, queries, tokens)
-    grids = [tuple(fm.shape[-2:]) for fm in probe.feature_maps]
-    h, w = grids[target.camera_index]
-    start = target.n_1d_tokens + sum(a * b for a, b in grids[: target.camera_index])
-    if start + h * w > log_weights.shape[-1]:
-        raise RuntimeError(
-            f"token layout mismatch: camera grid {h}x{w} at {start} beyond {log_weights.shape[-1]} tokens"
-        )
-    on_camera = log_weights[:, :, start : start + h * w]
-    share = on_camera.exp().sum(-1).mean(1)
-    return grid_attention(on_camera).view(-1, h, w).cpu().numpy(), share.cpu().numpy()
 
 
 def attention_masses(attention: np.ndarray, segmentation: np.ndarray) -> dict[str, float]:
@@ -262,7 +200,7 @@ def run_attention(cfg: AttentionConfig) -> Path:
     codec = pick_codec(opts.codec)
     loaded, spec = load_act_family(cfg.policy, cfg.env)
     policy = loaded.policy
-    target = resolve_target(policy.config, opts)
+    target = resolve_target(policy.config, opts.head, opts.layer, opts.camera)
     model = acting_model(policy)
     mha = model.decoder.layers[target.layer].multihead_attn
     has_phase_head = hasattr(model, "phase_head")

@@ -6,6 +6,11 @@ evaluation: no gradients, so no copy-paste; dropout off) and one action-chunk pr
 compared with the demonstrated ones: the absolute error of each joint target (rad) and of the gripper
 command, and the distance between the tool-centre points the two joint targets put the gripper at (cm,
 the UR3e's forward kinematics). `l1` is the training loss's term on the whole chunk (normalized units).
+Beside the errors, per frame: the share of the supervised cross-attention head's weight (act_modified's
+`attention_head` of the last decoder layer; head 0 for stock ACT) that falls on its camera's tokens before
+the paper's renormalization (a head that puts its weight on the 1D tokens satisfies eq. (1)'s terms through a
+camera share near zero), and, for a policy with a phase head, the phase it predicts (at inference that picks
+the prompt crop).
 
 Frames are grouped by segment, read off the demonstration: the dataset's phase (0 acquire, 1 place) and
 what the demonstrated gripper command does over the compared steps (open throughout, closing, closed
@@ -29,10 +34,14 @@ import numpy as np
 from lerobot_condground.core.configs import DatasetRefConfig, PolicyRefConfig
 from lerobot_condground.core.provenance import command_line, versions
 from lerobot_condground.core.ur3e import forward_kinematics
+from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, camera_attention, resolve_target
 
 logger = logging.getLogger(__name__)
 
 SEGMENTS = ("reach", "grasp", "lift", "carry", "release", "retreat")
+LOW_CAMERA_SHARE = (
+    0.01  # "the head looks past the camera": less than 1 % of its weight on the camera's tokens
+)
 # (phase, what the gripper command does over the compared steps) -> segment
 _SEGMENT_OF = {
     (0, "open"): "reach",
@@ -134,6 +143,13 @@ def summarize(frames) -> dict:
             "tcp_cm": float(group["tcp_cm"].mean()),
             "tcp_cm_median": float(group["tcp_cm"].median()),
             "tcp_cm_p90": float(group["tcp_cm"].quantile(0.9)),
+            "head_camera_share_median": float(group["head_camera_share"].median()),
+            "head_camera_share_low": float((group["head_camera_share"] < LOW_CAMERA_SHARE).mean()),
+            "phase_accuracy": (
+                None
+                if group["phase_predicted"].isna().all()
+                else float((group["phase_predicted"] == group["phase"]).mean())
+            ),
         }
 
     by_segment = {s: one(g) for s, g in frames.groupby("segment") if len(g)}
@@ -142,12 +158,15 @@ def summarize(frames) -> dict:
 
 def format_fit(result: dict) -> str:
     lines = [
-        f"{'segment':<8} {'frames':>6} {'l1':>7} {'tcp cm':>7} {'p90 cm':>7} {'base rad':>8} {'wrist3 rad':>10} {'gripper':>7}"
+        f"{'segment':<8} {'frames':>6} {'l1':>7} {'tcp cm':>7} {'p90 cm':>7} {'base rad':>8} {'wrist3 rad':>10} "
+        f"{'gripper':>7} {'cam share':>9} {'<1 %':>5} {'phase acc':>9}"
     ]
     for name, row in result["segments"].items():
+        accuracy = "n/a" if row["phase_accuracy"] is None else f"{row['phase_accuracy']:.3f}"
         lines.append(
             f"{name:<8} {row['frames']:>6} {row['l1']:>7.4f} {row['tcp_cm']:>7.2f} {row['tcp_cm_p90']:>7.2f} "
-            f"{row['joint_rad'][0]:>8.4f} {row['joint_rad'][5]:>10.4f} {row['gripper']:>7.3f}"
+            f"{row['joint_rad'][0]:>8.4f} {row['joint_rad'][5]:>10.4f} {row['gripper']:>7.3f} "
+            f"{row['head_camera_share_median']:>9.2g} {row['head_camera_share_low']:>5.2f} {accuracy:>9}"
         )
     return "\n".join(lines)
 
@@ -211,7 +230,7 @@ def _load(cfg: FitConfig):
     return policy, preprocessor, postprocessor, dataset, described, episodes, steps
 
 
-def _batch_rows(policy, preprocessor, postprocessor, dataset, indices: list[int], steps: int):
+def _batch_rows(policy, preprocessor, postprocessor, dataset, indices: list[int], steps: int, probe, target):
     """One batch of dataset frames -> its rows of the frame table."""
     import pandas as pd
     import torch
@@ -221,7 +240,17 @@ def _batch_rows(policy, preprocessor, postprocessor, dataset, indices: list[int]
     valid = ~batch["action_is_pad"].numpy()[:, :steps]
     phase = batch["observation.phase"].reshape(-1).numpy()
     processed = preprocessor(batch)
-    predicted = policy.predict_action_chunk(processed)
+    with probe:  # the forward predict_action_chunk runs, with the supervised head's query and key captured
+        outputs = probe.forward(policy, processed)
+    predicted = outputs[0]
+    mha = probe.model.decoder.layers[target.layer].multihead_attn
+    _, share = camera_attention(probe, mha, target)
+    aux = outputs[2] if len(outputs) > 2 and isinstance(outputs[2], dict) else {}
+    phase_predicted = (
+        aux["phase_logits"].argmax(-1).float().cpu().numpy()
+        if "phase_logits" in aux
+        else np.full(len(indices), np.nan)
+    )
     chunk_valid = ~processed["action_is_pad"].unsqueeze(-1)
     l1 = (torch.abs(processed["action"] - predicted) * chunk_valid).sum((1, 2)) / (
         chunk_valid.sum((1, 2)) * predicted.shape[-1]
@@ -235,6 +264,8 @@ def _batch_rows(policy, preprocessor, postprocessor, dataset, indices: list[int]
             "segment": segments(phase, demonstrated),
             "l1": l1.float().cpu().numpy(),
             **frame_errors(predicted, demonstrated, valid),
+            "head_camera_share": share,
+            "phase_predicted": phase_predicted,
         }
     )
 
@@ -246,6 +277,8 @@ def run_fit(cfg: FitConfig) -> Path:
     from tqdm import tqdm
 
     policy, preprocessor, postprocessor, dataset, described, episodes, steps = _load(cfg)
+    target = resolve_target(policy.config)
+    probe = ACTProbe(acting_model(policy), attention_layer=target.layer)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     frame_index = np.asarray(dataset.hf_dataset["frame_index"]).reshape(-1)
@@ -265,6 +298,8 @@ def run_fit(cfg: FitConfig) -> Path:
                     dataset,
                     indices[start : start + cfg.fit.batch_size],
                     steps,
+                    probe,
+                    target,
                 )
             )
     frames = pd.concat(rows, ignore_index=True)
@@ -276,6 +311,7 @@ def run_fit(cfg: FitConfig) -> Path:
         "dataset": str(cfg.dataset.path()),
         "episodes": episodes,
         "steps": steps,
+        "attention": {"head": target.head, "layer": target.layer, "camera": target.camera},
         "frame_stride": cfg.fit.frame_stride,
         "segments": summarize(frames),
         "command": command_line("fit", cfg),

@@ -1,7 +1,9 @@
-"""Forward hooks and loading for ACT-family checkpoints (stock `act`, `act_modified`), shared by the
-representation diagnostics and the attention views."""
+"""Forward hooks, loading and the cross-attention head reader for ACT-family checkpoints (stock `act`,
+`act_modified`), shared by the representation diagnostics, the attention views and the fit."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,6 +16,8 @@ from lerobot_condground.evaluation.checkpoints import (
     resolve_device,
 )
 from lerobot_condground.evaluation.rollout import EnvSpec
+
+CAMERA_PREFIX = "observation.images."
 
 
 def check_act_family(loaded) -> None:
@@ -176,3 +180,72 @@ def torch_cat(tensors) -> np.ndarray:
     import torch
 
     return torch.cat(tensors, dim=1).cpu().numpy()
+
+
+@dataclass
+class AttentionTarget:
+    """Which head, layer and camera grid to read, resolved against a policy config."""
+
+    head: int
+    layer: int
+    camera: str  # short name: top, wrist
+    camera_index: int
+    n_1d_tokens: int
+
+
+def resolve_target(
+    config, head: int | None = None, layer: int = -1, camera: str | None = None
+) -> AttentionTarget:
+    """Defaults: act_modified's supervised `attention_head` (0 for stock ACT), the last decoder layer, its
+    `attention_camera` (else the first camera); the messages name `condground attention`'s flags."""
+    n_heads, n_layers = config.n_heads, config.n_decoder_layers
+    head = head if head is not None else int(getattr(config, "attention_head", 0) or 0)
+    if isinstance(head, bool) or not 0 <= head < n_heads:
+        raise ValueError(
+            f"--attention.head={head} is out of range; allowed: 0..{n_heads - 1} (the policy has n_heads={n_heads})"
+        )
+    if isinstance(layer, bool) or not -n_layers <= layer < n_layers:
+        raise ValueError(
+            f"--attention.layer={layer} is out of range; allowed: {-n_layers}..{n_layers - 1} "
+            f"(the policy has n_decoder_layers={n_layers})"
+        )
+    cameras = [key[len(CAMERA_PREFIX) :] for key in config.image_features]
+    if camera is None:
+        default = getattr(config, "attention_camera", None)
+        camera = (
+            default[len(CAMERA_PREFIX) :] if default and default.startswith(CAMERA_PREFIX) else cameras[0]
+        )
+    if camera not in cameras:
+        raise ValueError(
+            f"--attention.camera={camera!r} is not a camera of the policy; allowed: {', '.join(cameras)}"
+        )
+    n_1d = 1 + (config.robot_state_feature is not None) + (config.env_state_feature is not None)
+    return AttentionTarget(
+        head=head,
+        layer=layer % n_layers,
+        camera=camera,
+        camera_index=cameras.index(camera),
+        n_1d_tokens=n_1d,
+    )
+
+
+def camera_attention(probe: ACTProbe, mha, target: AttentionTarget) -> tuple[np.ndarray, np.ndarray]:
+    """After a probe forward: ((B, h, w) attention over the camera's grid summing to 1, (B,) share of the
+    head's attention that fell on that camera's tokens before renormalizing)."""
+    from lerobot_condground.policies.act_modified.modeling_act_modified import (
+        grid_attention,
+        head_log_attention,
+    )
+
+    query, key = probe.query_key
+    log_weights = head_log_attention(mha, query, key, target.head)  # (B, queries, tokens)
+    grids = [tuple(fm.shape[-2:]) for fm in probe.feature_maps]
+    h, w = grids[target.camera_index]
+    start = target.n_1d_tokens + sum(a * b for a, b in grids[: target.camera_index])
+    if start + h * w > log_weights.shape[-1]:
+        raise RuntimeError(
+            f"token layout mismatch: camera grid {h}x{w} at {start} beyond {log_weights.shape[-1]} tokens"
+        )
+    on_camera = log_weights[:, :, start : start + h * w]
+    share = on_camera.exp().sum(-1).mean(1)
+    return grid_attention(on_camera).view(-1, h, w).cpu().numpy(), share.cpu().numpy()

@@ -17,12 +17,16 @@ from lerobot_condground.diagnosis.attention import (
     AttentionConfig,
     AttentionOptions,
     attention_masses,
-    camera_attention,
     json_safe,
-    resolve_target,
     run_attention,
 )
-from lerobot_condground.diagnosis.hooks import ACTProbe, load_act_family, model_inputs
+from lerobot_condground.diagnosis.hooks import (
+    ACTProbe,
+    camera_attention,
+    load_act_family,
+    model_inputs,
+    resolve_target,
+)
 from lerobot_condground.evaluation.rollout import policy_batch, run_episodes
 
 STEPS = 23  # chunks of 10 actions: 3 chunk predictions
@@ -141,7 +145,7 @@ def test_matches_act_modified_supervised_attention(tiny_checkpoints):
     env = spec.make()
     obs, _ = env.reset(seed=4)
     policy = loaded.policy
-    target = resolve_target(policy.config, AttentionOptions())
+    target = resolve_target(policy.config)
     mha = policy.model.decoder.layers[target.layer].multihead_attn
     with torch.inference_mode():
         batch = policy_batch(loaded, [obs], [env])

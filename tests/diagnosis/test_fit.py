@@ -96,3 +96,49 @@ def test_bad_input_is_one_line(recorded_dataset, tmp_path):
         )  # fmt: skip
         assert proc.returncode == 2 and message in proc.stderr.strip().splitlines()[-1], proc.stderr
         assert not (tmp_path / "out").exists()
+
+
+def test_fit_reports_the_supervised_heads_camera_share_and_the_predicted_phase(recorded_dataset, tmp_path):
+    """The share recomputed here from PyTorch's own per-head attention weights (need_weights), and the phase
+    from the phase head's logits, frame by frame against what `condground fit` wrote."""
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_condground.policies.act_modified.modeling_act_modified import ACTModifiedPolicy
+
+    checkpoint = make_checkpoint(tmp_path / "full", variant="full", seed=3)
+    out = tmp_path / "fit"
+    run_cli(
+        "condground", "fit", f"--policy.path={checkpoint}", f"--dataset.root={recorded_dataset}",
+        "--fit.episodes=0", "--fit.frame_stride=10", f"--output_dir={out}", "--progress=false",
+    )  # fmt: skip
+    frames = pd.read_parquet(out / "frames.parquet").sort_values("frame_index")
+    policy = ACTModifiedPolicy.from_pretrained(checkpoint).eval()
+    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=checkpoint)
+    dataset = LeRobotDataset("local/test_full_mixed", root=recorded_dataset, episodes=[0])
+    index = [i for i in range(len(dataset)) if int(dataset.hf_dataset[i]["frame_index"]) % 10 == 0]
+    batch = preprocessor(torch.utils.data.default_collate([dataset[i] for i in index]))
+    mha = policy.model.decoder.layers[-1].multihead_attn
+    captured = {}
+
+    def weights(module, args, kwargs, output):
+        names = ("query", "key", "value")
+        inputs = {**dict(zip(names, args, strict=False)), **{n: kwargs[n] for n in names if n in kwargs}}
+        handle.remove()  # the call below must not come back here
+        captured["w"] = module(**inputs, need_weights=True, average_attn_weights=False)[1]
+
+    handle = mha.register_forward_hook(weights, with_kwargs=True)
+    with torch.inference_mode():
+        image = batch["observation.images.top"]
+        grid = policy.model.backbone(image)["feature_map"].shape[-2:]
+        logits = policy.model({**batch, "observation.images": [image]})[2]["phase_logits"]
+    n_1d = 2  # the latent and the robot state come first, the camera's tokens next
+    share = captured["w"][:, policy.config.attention_head, :, n_1d : n_1d + grid.numel()].sum(-1).mean(-1)
+    np.testing.assert_allclose(frames["head_camera_share"], share.numpy(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_array_equal(frames["phase_predicted"], logits.argmax(-1).numpy())
+    segments_ = read_json(out / "fit.json")["segments"]
+    assert segments_["all"]["phase_accuracy"] == pytest.approx(
+        (frames["phase_predicted"] == frames["phase"]).mean()
+    )
+    assert 0 < segments_["all"]["head_camera_share_median"] < 1
