@@ -39,9 +39,8 @@ from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, camera_at
 logger = logging.getLogger(__name__)
 
 SEGMENTS = ("reach", "grasp", "lift", "carry", "release", "retreat")
-LOW_CAMERA_SHARE = (
-    0.01  # "the head looks past the camera": less than 1 % of its weight on the camera's tokens
-)
+# "The head looks past the camera": less than 1 % of its weight on the camera's tokens.
+LOW_CAMERA_SHARE = 0.01
 # (phase, what the gripper command does over the compared steps) -> segment
 _SEGMENT_OF = {
     (0, "open"): "reach",
