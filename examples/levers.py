@@ -293,9 +293,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
             for step in pooled_steps(args, arm):
                 frame = outcomes(args, arm, seed, step)
                 columns.append(frame[["layout_seed", "success"]])
-                per_rollout.append(
-                    frame[["layout_seed", "success"]].assign(lever=arm, task=args.task, seed=seed, step=step)
-                )
+                per_rollout.append(columns[-1].assign(lever=arm, task=args.task, seed=seed, step=step))
                 r = rate(int(frame["success"].sum()), len(frame))
                 per_checkpoint.append(
                     {"lever": arm, "task": args.task, "seed": seed, "step": step, "success": r["rate"],

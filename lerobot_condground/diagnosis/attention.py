@@ -202,7 +202,6 @@ def run_attention(cfg: AttentionConfig) -> Path:
     policy = loaded.policy
     target = resolve_target(policy.config, opts.head, opts.layer, opts.camera)
     model = acting_model(policy)
-    mha = model.decoder.layers[target.layer].multihead_attn
     has_phase_head = hasattr(model, "phase_head")
 
     out = Path(cfg.output_dir)
@@ -231,7 +230,7 @@ def run_attention(cfg: AttentionConfig) -> Path:
     def on_step(step: int, batch: dict, observations: list[dict], active: np.ndarray) -> None:
         with torch.inference_mode(), probe:
             outputs = probe.forward(policy, batch)
-            attention, share = camera_attention(probe, mha, target)
+            attention, share = camera_attention(probe, target)
         aux = outputs[2] if len(outputs) > 2 and isinstance(outputs[2], dict) else {}
         phase = probability = None
         if has_phase_head and "phase_logits" in aux:

@@ -242,8 +242,7 @@ def _batch_rows(policy, preprocessor, postprocessor, dataset, indices: list[int]
     with probe:  # the forward predict_action_chunk runs, with the supervised head's query and key captured
         outputs = probe.forward(policy, processed)
     predicted = outputs[0]
-    mha = probe.model.decoder.layers[target.layer].multihead_attn
-    _, share = camera_attention(probe, mha, target)
+    _, share = camera_attention(probe, target)
     aux = outputs[2] if len(outputs) > 2 and isinstance(outputs[2], dict) else {}
     phase_predicted = (
         aux["phase_logits"].argmax(-1).float().cpu().numpy()

@@ -10,14 +10,13 @@ import numpy as np
 from lerobot_condground.core.conditions import ConditionSpec, check_task
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
 from lerobot_condground.evaluation.checkpoints import (
+    CAMERA_PREFIX,
     check_env_fits,
     describe_checkpoint,
     load_policy,
     resolve_device,
 )
 from lerobot_condground.evaluation.rollout import EnvSpec
-
-CAMERA_PREFIX = "observation.images."
 
 
 def check_act_family(loaded) -> None:
@@ -229,15 +228,16 @@ def resolve_target(
     )
 
 
-def camera_attention(probe: ACTProbe, mha, target: AttentionTarget) -> tuple[np.ndarray, np.ndarray]:
-    """After a probe forward: ((B, h, w) attention over the camera's grid summing to 1, (B,) share of the
-    head's attention that fell on that camera's tokens before renormalizing)."""
+def camera_attention(probe: ACTProbe, target: AttentionTarget) -> tuple[np.ndarray, np.ndarray]:
+    """After a probe forward at target.layer: ((B, h, w) attention over the camera's grid summing to 1,
+    (B,) share of the head's attention that fell on that camera's tokens before renormalizing)."""
     from lerobot_condground.policies.act_modified.modeling_act_modified import (
         grid_attention,
         head_log_attention,
     )
 
     query, key = probe.query_key
+    mha = probe.model.decoder.layers[target.layer].multihead_attn
     log_weights = head_log_attention(mha, query, key, target.head)  # (B, queries, tokens)
     grids = [tuple(fm.shape[-2:]) for fm in probe.feature_maps]
     h, w = grids[target.camera_index]

@@ -146,12 +146,11 @@ def test_matches_act_modified_supervised_attention(tiny_checkpoints):
     obs, _ = env.reset(seed=4)
     policy = loaded.policy
     target = resolve_target(policy.config)
-    mha = policy.model.decoder.layers[target.layer].multihead_attn
     with torch.inference_mode():
         batch = policy_batch(loaded, [obs], [env])
         with ACTProbe(policy.model, attention_layer=target.layer) as probe:
             probe.forward(policy, batch)
-            ours, share = camera_attention(probe, mha, target)
+            ours, share = camera_attention(probe, target)
         supervised = policy.model(model_inputs(policy, batch), with_attention=True)[2]["attention"]
     np.testing.assert_allclose(ours, supervised.numpy(), atol=1e-6)
     assert 0 < share[0] <= 1
