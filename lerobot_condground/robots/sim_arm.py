@@ -32,6 +32,8 @@ class TwinBackend:
         self.env = env
         self.freedrive_on = False
         self.servo_stops = 0
+        # Simulation time of the last servo stop, as a controller logs it.
+        self.stopped_at: float | None = None
 
     def read(self):
         env = self.env
@@ -45,6 +47,7 @@ class TwinBackend:
         # Position servos held at the measured joints: the arm decelerates to standstill where it is.
         self.env.data.ctrl[:6] = self.env.joint_positions()
         self.servo_stops += 1
+        self.stopped_at = float(self.env.data.time)
 
     def set_gripper(self, closure):
         self.env.data.ctrl[6] = float(np.clip(closure, 0.0, 1.0)) * sim_robot.FINGER_TRAVEL

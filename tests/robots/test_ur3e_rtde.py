@@ -337,7 +337,7 @@ def test_lerobot_calibrate_stores_the_home_pose(controller, tmp_path):
         text=True,
         timeout=120,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == 0, f"rc {proc.returncode}\n{proc.stdout[-1500:]}\n{proc.stderr[-1500:]}"
     assert json.loads((tmp_path / "lab.json").read_text())["home"] == pytest.approx(Q)
     # The calibrated arm, found elsewhere, goes home on connect through the safety layer.
     controller.set(actual_q=[Q[0] + 0.3, *Q[1:]])
