@@ -7,7 +7,11 @@ gripper command and the stage flags. Events:
 - a *closing*: the gripper command crosses to closed (>= 0.5); its *offset* is the horizontal distance
   from the tool-centre point to the target's centre then (cm), its *height* the vertical one;
 - *pushed*: how far the target moved on the table before the first closing (cm);
-- *stalled*: the episode ran to its step limit and the tool moved less than 1 cm over its last 2 s.
+- *stalled*: the episode ran to its step limit and the tool moved less than 1 cm over its last 2 s;
+- with a phase predictor (act_modified), the phase it predicted at every action chunk beside the world's
+  phase then (place once the target is held or placed, pick before); *place_phase_unheld* counts the
+  chunks it predicted place while the target was neither held nor placed: the prompt switched to the
+  receptacle and the policy acted as if carrying a cube it did not have.
 
 Each failed rollout gets one cause, the first that applies: `unstable` (physics), `cube_off_table`,
 `wrong_object` (a look-alike grasped), `wrong_receptacle`, `lifted_not_placed` (dropped, or released
@@ -77,13 +81,19 @@ class Tracer:
         self.closed_ctrl = CLOSED * FINGER_TRAVEL  # the gripper actuator's set point for a command
         self.stall_steps = int(STALL_SECONDS * fps)
         n = len(envs)
-        self.start = [env.entity_pose(TARGET)[0] for env in envs]
+        self.start = None  # the target's position after reset, read at the first step
         self.closed = np.zeros(n, dtype=bool)
-        self.closings: list[list[tuple[float, float]]] = [[] for _ in range(n)]
+        self.closings: list[list[tuple[float, float, int]]] = [[] for _ in range(n)]  # offset, height, step
         self.pushed = np.zeros(n)
         self.tool: list[list[np.ndarray]] = [[] for _ in range(n)]
+        self.active = np.zeros(n, dtype=bool)
+        self.phases: list[list[tuple[int, int, int]]] = [[] for _ in range(n)]  # (step, predicted, world)
+        self.step = 0
 
     def __call__(self, step: int, batch, observations: list[dict], active: np.ndarray) -> None:
+        self.active, self.step = active, step
+        if self.start is None:
+            self.start = [env.entity_pose(TARGET)[0] for env in self.envs]
         for i in np.flatnonzero(active):
             env = self.envs[i]
             tool, target = env.tcp_pose()[0], env.entity_pose(TARGET)[0]
@@ -91,11 +101,20 @@ class Tracer:
             closed = env.data.ctrl[6] >= self.closed_ctrl  # the last step's gripper command
             if closed and not self.closed[i]:
                 self.closings[i].append(
-                    (float(np.hypot(*(tool - target)[:2]) * 100), float((tool - target)[2] * 100))
+                    (float(np.hypot(*(tool - target)[:2]) * 100), float((tool - target)[2] * 100), step)
                 )
             self.closed[i] = closed
             if not self.closings[i]:
                 self.pushed[i] = max(self.pushed[i], float(np.hypot(*(target - self.start[i])[:2]) * 100))
+
+    def on_phase(self, module, inputs, logits) -> None:
+        """Forward hook on the phase head: its output for the batch the policy is acting on now (between
+        this step's read-out and its action, so the world's phase is the one the prediction was made in)."""
+        predicted = logits.argmax(-1).cpu().numpy()
+        for i in np.flatnonzero(self.active):
+            tracker = self.envs[i].tracker
+            world = int(tracker.held == TARGET or tracker.place)
+            self.phases[i].append((self.step, int(predicted[i]), world))
 
     def measurements(self, i: int, truncated: bool) -> dict:
         closings = self.closings[i]
@@ -106,9 +125,25 @@ class Tracer:
             "closings": len(closings),
             "first_close_offset_cm": offsets[0] if offsets else float("nan"),
             "first_close_height_cm": closings[0][1] if closings else float("nan"),
+            "first_close_step": closings[0][2] if closings else -1,
             "min_close_offset_cm": min(offsets) if offsets else float("nan"),
             "pushed_cm": float(self.pushed[i]),
             "stalled": bool(truncated and len(tail) >= self.stall_steps and path < STALL_CM),
+            **self._phase_measurements(i),
+        }
+
+    def _phase_measurements(self, i: int) -> dict:
+        if not any(self.phases):  # no phase predictor
+            return {}
+        steps, predicted, world = (np.array(column) for column in zip(*self.phases[i]))
+        place = np.flatnonzero(predicted == 1)
+        return {
+            "phase_steps": steps,
+            "phase_predicted": predicted.astype(np.int8),
+            "phase_world": world.astype(np.int8),
+            "first_place_phase_step": int(steps[place[0]]) if len(place) else -1,
+            "phase_agreement": float((predicted == world).mean()),
+            "place_phase_unheld": int(((predicted == 1) & (world == 0)).sum()),
         }
 
 
@@ -140,7 +175,7 @@ def summarize(rows) -> dict:
     failed = rows[~rows["success"]]
     counts = rows["cause"].value_counts()
     closed = rows[rows["closings"] > 0]
-    return {
+    result = {
         "rollouts": len(rows),
         "successes": int(rows["success"].sum()),
         "causes": {c: int(counts.get(c, 0)) for c in CAUSES},
@@ -151,6 +186,13 @@ def summarize(rows) -> dict:
             "failure_median": float(closed[~closed["success"]]["first_close_offset_cm"].median()),
         },
     }
+    if "place_phase_unheld" in rows:
+        result["phase"] = {
+            "agreement": float(rows["phase_agreement"].mean()),
+            "failures_with_place_phase_unheld": int((failed["place_phase_unheld"] > 0).sum()),
+            "successes_with_place_phase_unheld": int((rows[rows["success"]]["place_phase_unheld"] > 0).sum()),
+        }
+    return result
 
 
 def format_failures(result: dict) -> str:
@@ -163,6 +205,12 @@ def format_failures(result: dict) -> str:
         f"{offsets['failure_median']:.1f} cm in failures; failures that re-grasped: {result['regrasped']}, "
         f"stalled: {result['stalled']}"
     )
+    if phase := result.get("phase"):
+        lines.append(
+            f"phase predictor agrees with the world on {phase['agreement']:.0%} of chunks; predicted place "
+            f"without the target held in {phase['failures_with_place_phase_unheld']} failures and "
+            f"{phase['successes_with_place_phase_unheld']} successes"
+        )
     return "\n".join(lines)
 
 
@@ -201,6 +249,8 @@ def run_failures(cfg: FailuresConfig) -> Path:
         cfg.policy.label,
         trust_remote_code=cfg.policy.trust_remote_code,
     )
+    # act_modified's phase predictor (of its moving average when it keeps one: the weights that act).
+    phase_head = getattr(getattr(loaded.policy, "acting_model", None), "phase_head", None)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     pool, rows = EnvPool(), []
@@ -209,15 +259,14 @@ def run_failures(cfg: FailuresConfig) -> Path:
         episodes = list(range(start, min(start + opts.batch_size, opts.episodes)))
         seeds = [layout_seed(opts.seed_offset, 0, e) for e in episodes]
         envs = pool.get(spec, len(seeds))
-        tracer = None
-
-        def on_step(step, batch, observations, active, envs=envs):
-            nonlocal tracer
-            if tracer is None:  # after reset: the target's starting position
-                tracer = Tracer(envs, spec.fps)
-            tracer(step, batch, observations, active)
-
-        outcomes = run_episodes(loaded, envs, seeds, spec.episode_length, on_step=on_step)
+        tracer = Tracer(envs, spec.fps)
+        # The phase head runs once per action chunk, inside the policy call right after the tracer's step.
+        hook = phase_head.register_forward_hook(tracer.on_phase) if phase_head is not None else None
+        try:
+            outcomes = run_episodes(loaded, envs, seeds, spec.episode_length, on_step=tracer)
+        finally:
+            if hook is not None:
+                hook.remove()
         for i, (episode, seed, outcome) in enumerate(zip(episodes, seeds, outcomes, strict=True)):
             row = {
                 "episode": episode,

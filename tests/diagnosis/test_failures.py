@@ -15,18 +15,13 @@ def test_the_expert_closes_once_on_the_cube_without_pushing_it():
         task="PickPlaceFixedBin-v0", condition="clean", observation_height=96, observation_width=128
     )
     envs = [spec.make() for _ in range(2)]
-    tracers = []
-
-    def on_step(step, batch, observations, active):
-        if step == 0:
-            tracers.append(Tracer(envs, spec.fps))
-        tracers[0](step, batch, observations, active)
-
-    outcomes = run_episodes(describe_checkpoint("expert"), envs, [3, 4], spec.episode_length, on_step=on_step)
+    tracer = Tracer(envs, spec.fps)
+    outcomes = run_episodes(describe_checkpoint("expert"), envs, [3, 4], spec.episode_length, on_step=tracer)
     for i, outcome in enumerate(outcomes):
-        measured = tracers[0].measurements(i, outcome["truncated"])
+        measured = tracer.measurements(i, outcome["truncated"])
         assert outcome["success"] and measured["closings"] == 1, measured
         assert measured["first_close_offset_cm"] < 1.0 and measured["pushed_cm"] < 0.5, measured
+        assert 0 < measured["first_close_step"] < outcome["steps"], measured
         assert cause({**outcome, **measured}) == "success"
 
 
@@ -72,6 +67,15 @@ def test_failures_command_on_a_checkpoint(tiny_checkpoints, tmp_path):
     result = read_json(out / "failures.json")
     assert sum(result["causes"].values()) == 3 and result["servo"] == "interpolated"
     assert np.isfinite(rows["pushed_cm"]).all()
+    # The phase head ran once per 10-step chunk of each 30-step rollout; a random policy never holds the
+    # cube, so each place prediction is one made without it.
+    for _, row in rows.iterrows():
+        assert len(row["phase_predicted"]) == len(row["phase_world"]) == -(-row["steps"] // 10) == 3
+        assert list(row["phase_steps"]) == [0, 10, 20]
+        assert not row["phase_world"].any()
+        assert row["place_phase_unheld"] == row["phase_predicted"].sum()
+        assert row["phase_agreement"] == pytest.approx(1 - row["phase_predicted"].mean())
+    assert result["phase"]["failures_with_place_phase_unheld"] == (rows["place_phase_unheld"] > 0).sum()
 
 
 def test_bad_input_is_one_line(tiny_checkpoints, tmp_path):
