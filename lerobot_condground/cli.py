@@ -29,6 +29,10 @@ COMMANDS = {
         "augment",
         "Write a copy of a LeRobotDataset with synthetic distractors pasted in (copy-paste augmentation).",
     ),
+    "merge": (
+        "merge",
+        "Merge recordings (e.g. demos and DAgger takeovers) with LeRobot's merge, keeping how each episode was made.",
+    ),
     "train": (
         "train",
         "lerobot-train (same flags, same outputs) with decoded video frames held in memory: faster on a CPU.",

@@ -41,6 +41,7 @@ RANKS = {
 COMMAND_MODULES = {
     "datasets.record",
     "datasets.augment",
+    "datasets.merge",
     "evaluation.sweep",
     "evaluation.subgoals",
     "diagnosis.diagnose",

@@ -1,1 +1,2 @@
-"""Demonstration datasets: recording the scripted expert, copy-paste augmentation, dataset provenance."""
+"""Demonstration datasets: recording the scripted expert, merging recordings, copy-paste augmentation, dataset
+provenance."""

@@ -232,15 +232,20 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict, policy_hash: st
 
     provenance_path = root / RECORD_FILE
     if (root / "meta" / "info.json").exists():
+        previous = (
+            read_json_object(provenance_path, "Recording provenance") if provenance_path.exists() else {}
+        )
+        if "sources" in previous:
+            raise ValueError(
+                f"{root} holds a merge of {len(previous['sources'])} datasets (`condground merge`), which a "
+                "recording cannot resume; allowed: record into a new --dataset.root and merge it with the others"
+            )
         if provenance_path.exists():
             _discard_unsaved_episode(root)
         info = read_json_object(root / "meta" / "info.json", "Dataset info")
         if info.get("total_episodes") == 0 and provenance_path.exists():
             _remove_empty_recording(root)
             return _open_dataset(cfg, root, features, policy_hash)
-        previous = (
-            read_json_object(provenance_path, "Recording provenance") if provenance_path.exists() else {}
-        )
         mismatches = []
         if info.get("fps") != cfg.env.fps:
             mismatches.append(f"fps {info.get('fps')} != {cfg.env.fps}")
