@@ -78,15 +78,17 @@ def test_failures_command_on_a_checkpoint(tiny_checkpoints, tmp_path):
     assert result["phase"]["failures_with_place_phase_unheld"] == (rows["place_phase_unheld"] > 0).sum()
 
 
-def test_bad_input_is_one_line(tiny_checkpoints, tmp_path):
+def test_bad_input_is_one_line(tiny_checkpoints, tmp_path, capsys):
+    from lerobot_condground.cli import main
+
     for flag, message in (
         ("--failures.episodes=0", "--failures.episodes=0"),
         ("--env.task=InstrumentRouting-v0", "use `condground subgoals`"),
         ("--env.condition=object_color_9", "object_color_9"),
     ):
-        proc = run_cli(
-            "condground", "failures", f"--policy.path={tiny_checkpoints[0]}", flag,
-            f"--output_dir={tmp_path / 'out'}", check=False,
-        )  # fmt: skip
-        assert proc.returncode == 2 and message in proc.stderr.strip().splitlines()[-1], proc.stderr
+        code = main(
+            ["failures", f"--policy.path={tiny_checkpoints[0]}", flag, f"--output_dir={tmp_path / 'out'}"]
+        )
+        err = capsys.readouterr().err
+        assert code == 2 and message in err.strip().splitlines()[-1], err
         assert not (tmp_path / "out").exists()

@@ -84,17 +84,20 @@ def test_fit_of_a_constant_policy_matches_the_recording(recorded_dataset, tmp_pa
     assert result["steps"] == 5 and result["episodes"] == [0, 1]
 
 
-def test_bad_input_is_one_line(recorded_dataset, tmp_path):
+def test_bad_input_is_one_line(recorded_dataset, tmp_path, capsys):
+    from lerobot_condground.cli import main
+
     checkpoint = _constant_policy(tmp_path / "constant", 96, 128)
     for flag, message in (
         ("--fit.episodes=0:9", "--fit.episodes='0:9'"),
         ("--fit.steps=50", "--fit.steps=50"),
     ):
-        proc = run_cli(
-            "condground", "fit", f"--policy.path={checkpoint}", f"--dataset.root={recorded_dataset}", flag,
-            f"--output_dir={tmp_path / 'out'}", check=False,
+        code = main(
+            ["fit", f"--policy.path={checkpoint}", f"--dataset.root={recorded_dataset}", flag,
+             f"--output_dir={tmp_path / 'out'}"]
         )  # fmt: skip
-        assert proc.returncode == 2 and message in proc.stderr.strip().splitlines()[-1], proc.stderr
+        err = capsys.readouterr().err
+        assert code == 2 and message in err.strip().splitlines()[-1], err
         assert not (tmp_path / "out").exists()
 
 
