@@ -10,7 +10,6 @@ source and, with video, encoded again: pixels outside the pastes match the sourc
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 from dataclasses import asdict, dataclass, field
 
@@ -18,6 +17,7 @@ import numpy as np
 import torch
 
 from lerobot_condground.core.configs import DatasetOutputConfig, DatasetRefConfig
+from lerobot_condground.core.files import partial_beside
 from lerobot_condground.core.labels import OBS_SEGMENTATION, SYNTHETIC_DISTRACTOR, decode_labels, encode_png
 from lerobot_condground.core.provenance import AUGMENT_FILE, RECORD_FILE
 from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
@@ -114,12 +114,7 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
     features = _output_features(source, video)
     cameras = list(source.meta.camera_keys)
     camera = cfg.copy_paste.camera_key
-    # Written beside the output and renamed into place when whole: a failed or killed run leaves no
-    # dataset at --output.root that would block the rerun, and the rerun clears the partial copy.
-    partial = out_root.with_name(f".{out_root.name}.partial")
-    if partial.exists():
-        logging.info("Removing %s, the partial copy of an earlier run that did not finish", partial)
-        shutil.rmtree(partial)
+    partial = partial_beside(out_root)
     target = LeRobotDataset.create(
         cfg.output.repo_id,
         fps=source.meta.fps,

@@ -11,13 +11,12 @@ labelling when it has them) and every episode in the merged order, with the inde
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_condground.core.configs import DatasetOutputConfig, DatasetRefConfig
-from lerobot_condground.core.files import read_json_object
+from lerobot_condground.core.files import partial_beside, read_json_object
 from lerobot_condground.core.provenance import AUGMENT_FILE, PROMPTS_FILE, RECORD_FILE
 from lerobot_condground.core.trust import within
 
@@ -105,12 +104,7 @@ def merge_datasets(cfg: MergeConfig) -> dict:
         entry, records = _source(root, index)
         sources.append(entry)
         episodes += [{**record, "source": index} for record in records]
-    # Written beside the output and renamed into place when whole, as `condground augment` does: a failed
-    # or killed merge leaves nothing at --output.root that would block the rerun.
-    partial = out_root.with_name(f".{out_root.name}.partial")
-    if partial.exists():
-        logging.info("Removing %s, the partial merge of an earlier run that did not finish", partial)
-        shutil.rmtree(partial)
+    partial = partial_beside(out_root)
     out_root.parent.mkdir(parents=True, exist_ok=True)
     try:
         # LeRobot checks that fps, robot type and features agree, and names what differs.

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.core.configs import DatasetRefConfig, comma_items
+from lerobot_condground.core.files import partial_beside
 from lerobot_condground.core.labels import (
     OBS_PHASE,
     OBS_PROMPT_OBJECT,
@@ -327,11 +328,7 @@ def label_dataset(cfg: PromptsConfig) -> dict:
         bar.close()
 
     work = None
-    # Written beside the output and renamed when whole, as augment does; an earlier run's partial copy goes.
-    partial = out_root.with_name(f".{out_root.name}.partial")
-    if partial.exists():
-        logging.info("Removing %s, the partial copy of an earlier run that did not finish", partial)
-        shutil.rmtree(partial)
+    partial = partial_beside(out_root)
     out_root.parent.mkdir(parents=True, exist_ok=True)
     try:
         if len(episodes) < meta.total_episodes:
