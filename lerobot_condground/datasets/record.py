@@ -240,9 +240,21 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict, policy_hash: st
                 f"{root} holds a merge of {len(previous['sources'])} datasets (`condground merge`), which a "
                 "recording cannot resume; allowed: record into a new --dataset.root and merge it with the others"
             )
+        info = read_json_object(root / "meta" / "info.json", "Dataset info")
+        # Provenance is written ahead of the data, so it never lists fewer episodes than were saved: fewer
+        # means episodes added by something else (e.g. `lerobot-edit-dataset merge`), whose seeds a resumed
+        # recording would neither know nor avoid, and its record would then misname every later episode.
+        listed, total = len(previous.get("episodes", [])), info.get("total_episodes")
+        if isinstance(total, int) and total > listed:
+            how = f"its {RECORD_FILE} lists {listed}" if provenance_path.exists() else f"no {RECORD_FILE}"
+            raise ValueError(
+                f"{root} holds {total} episodes and {how}: episodes `condground record` did not record "
+                "there, which a recording cannot resume; allowed: record into a new --dataset.root and "
+                "combine the two with `condground merge`"
+            )
         if provenance_path.exists():
             _discard_unsaved_episode(root)
-        info = read_json_object(root / "meta" / "info.json", "Dataset info")
+            info = read_json_object(root / "meta" / "info.json", "Dataset info")
         if info.get("total_episodes") == 0 and provenance_path.exists():
             _remove_empty_recording(root)
             return _open_dataset(cfg, root, features, policy_hash)

@@ -72,7 +72,7 @@ def test_recorded_dataset_loads_with_lerobot_and_labels_are_consistent(recorded_
         assert item["task"] == "Pick the red cube and place it in the blue bowl."
 
 
-def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
+def test_rerun_resumes_and_different_settings_are_refused(tmp_path, capsys):
     root = tmp_path / "ds"
     common = [
         "--env.task=PickPlaceFixedBin-v0",
@@ -107,6 +107,21 @@ def test_rerun_resumes_and_different_settings_are_refused(tmp_path):
     bad = run_cli("condground", "record", *common, "--dataset.num_episodes=3", check=False)
     assert bad.returncode != 0 and "env.servo 'direct' != 'interpolated'" in bad.stderr, bad.stderr
     assert LeRobotDataset("local/resume", root=root).meta.total_episodes == 2
+
+    # Episodes the record does not list were added by something else (a stock merge, a copy): their seeds
+    # are unknown, so a resumed recording could repeat their layouts and its record would misname them.
+    from lerobot_condground.cli import main
+
+    files = {p: p.read_bytes() for p in root.rglob("*") if p.is_file() and p != root / RECORD_FILE}
+    provenance["episodes"] = provenance["episodes"][:1]
+    (root / RECORD_FILE).write_text(json.dumps(provenance))
+    assert main(["record", *common, "--dataset.num_episodes=3"]) == 2
+    assert f"holds 2 episodes and its {RECORD_FILE} lists 1" in capsys.readouterr().err
+    (root / RECORD_FILE).unlink()
+    assert main(["record", *common, "--dataset.num_episodes=3"]) == 2
+    err = capsys.readouterr().err
+    assert f"holds 2 episodes and no {RECORD_FILE}" in err and "`condground merge`" in err, err
+    assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == files
 
 
 def test_a_recording_that_saved_no_episode_does_not_block_the_corrected_rerun(tmp_path):
