@@ -1,6 +1,6 @@
 # Setup is idempotent: each target installs what is missing, then runs.
 #   make quickstart   record demos, train and evaluate a small act_modified, print stage tables
-#   make test         lint (ruff), then the test suite (default run, no GPU, about 11 minutes on 2 cores)
+#   make test         lint (ruff), then the test suite (default run, no GPU, 11-25 minutes on 2 cores)
 SHELL := /bin/bash
 VENV := .venv
 STAMP := $(VENV)/.installed
