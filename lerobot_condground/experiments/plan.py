@@ -39,6 +39,8 @@ PRESETS: dict[str, dict] = {
         "record.drift_std": CPU_DRIFT_STD,
         "record.observation_height": CPU_FRAME_SIZE[0],
         "record.observation_width": CPU_FRAME_SIZE[1],
+        "takeover.episodes": 0,
+        "takeover.driver_steps": CPU_STEPS // 2,
         "train.variants": ",".join(VARIANT_ORDER),
         "train.seeds": 1,
         "train.steps": CPU_STEPS,
@@ -65,6 +67,8 @@ PRESETS: dict[str, dict] = {
         "record.drift_std": 0.0,  # the paper's clean demonstrations
         "record.observation_height": 240,
         "record.observation_width": 320,
+        "takeover.episodes": 0,
+        "takeover.driver_steps": 50_000,
         "train.variants": ",".join(VARIANT_ORDER),
         "train.seeds": 3,
         "train.steps": 100_000,
@@ -103,6 +107,8 @@ ROLLOUTS_PER_CORE_MIN = {"cpu": 13.0, "paper": 8.6}
 # 100 clean episodes with labels and video took 395 s on 2 cores; counted as one core's 7.9 s per episode,
 # spread over at most 2 (one recording process; the software renderer's threads are what use the second).
 RECORD_CORE_S_PER_EPISODE = 7.9
+# 300 recorded episodes (24 153 frames at 96x128) merged in 5 minutes beside two trainings.
+MERGE_S_PER_EPISODE = 1.0
 DIAGNOSE_S_PER_PAIR = 5.8  # Task 2 standard, 20 pairs at 96x128 in 115 s on one core beside a training
 REPORT_S = 60.0
 
@@ -114,6 +120,21 @@ class RecordSettings:
     drift_std: float | None = None
     observation_height: int | None = None
     observation_width: int | None = None
+
+
+@dataclass
+class TakeoverSettings:
+    # One DAgger round before the variants train (`condground record --takeover.*`): `standard` trains
+    # --takeover.driver_steps on the demonstrations, drives this many episodes from new layouts until the
+    # scripted expert takes over and finishes, and the variants train on the demonstrations and these merged
+    # (`condground merge`). 0: the variants train on the demonstrations alone.
+    episodes: int | None = None
+    driver_steps: int | None = None
+
+
+# Takeover episodes draw their layouts from this seed on: past the demonstrations' (0, 1, ...: at most
+# MAX_EPISODES and their failures), below the held-out layouts `condground sweep` draws.
+TAKEOVER_SEED = 500_000
 
 
 @dataclass
@@ -167,6 +188,7 @@ class ReproduceConfig:
     tasks: str | None = None
     env: EnvSettings = field(default_factory=EnvSettings)
     record: RecordSettings = field(default_factory=RecordSettings)
+    takeover: TakeoverSettings = field(default_factory=TakeoverSettings)
     train: TrainSettings = field(default_factory=TrainSettings)
     eval: EvalSettings = field(default_factory=EvalSettings)
     diagnose: DiagnoseSettings = field(default_factory=DiagnoseSettings)
@@ -198,6 +220,7 @@ class ReproduceConfig:
         # What each stage's own command would refuse, refused here: pinned in reproduce.json, a value the
         # first stage fails on would block the corrected rerun.
         self._check_stage_limits()
+        check_at_least(self.takeover, "takeover.", episodes=0, driver_steps=1)
         check_at_least(self.train, "train.", seeds=1, steps=1, batch_size=1, save_freq=1, num_workers=0)
         check_at_least(self.eval, "eval.", seeds=1, n_episodes=1, batch_size=1, episode_length=1)
         check_at_least(self.diagnose, "diagnose.", pairs=1)
@@ -229,6 +252,7 @@ class ReproduceConfig:
             raise ValueError(f"--record.observation_height/width: {err}") from None
         for flag, value, limit in (
             ("--record.episodes", self.record.episodes, MAX_EPISODES),
+            ("--takeover.episodes", self.takeover.episodes, MAX_EPISODES),
             ("--eval.n_episodes", self.eval.n_episodes, EPISODES_PER_SEED_LIMIT),
         ):
             if value > limit:
@@ -266,6 +290,8 @@ class ReproduceConfig:
         for key in ("tasks", "jobs", "dry_run", "progress", "output_dir"):
             settings.pop(key)
         settings["train"].pop("variants")
+        if not self.takeover.episodes:  # as reproductions from before the setting: demonstrations alone
+            settings.pop("takeover")
         settings["policy_flags"] = self.policy_flags()
         return settings
 
@@ -303,16 +329,20 @@ def _split(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
     return items
 
 
+# Stages that make the data and checkpoints the results are measured on: the report reads none of them.
+DATA_KINDS = ("record", "driver", "takeover", "merge", "train")
+
+
 @dataclass
 class Stage:
     name: str  # e.g. train/PickPlaceRandomBin-v0/full/seed0; also its directory under --output_dir
-    kind: str  # record, train, sweep, sweep_counterbalanced, diagnose, probe, report
+    kind: str  # one of DATA_KINDS, sweep, sweep_counterbalanced, diagnose, probe, report
     after: tuple[str, ...]  # stages whose outputs it reads
     estimate_s: float  # on one job's share of this machine
     work: str  # what it does, in counts
     rollouts: int = 0  # sweeps: how many
     task: str = ""
-    variant: str = ""  # train, sweeps, diagnose, probe
+    variant: str = ""  # driver, train, sweeps, diagnose, probe
     seed: int = 0  # train, diagnose, probe: the training seed
 
     @property
@@ -322,11 +352,19 @@ class Stage:
 
 def checkpoint_dir(cfg: ReproduceConfig, task: str, variant: str, seed: int) -> Path:
     """The training run's final checkpoint, where lerobot-train writes it."""
+    return _final_checkpoint(Path(cfg.output_dir) / "train" / task / variant / f"seed{seed}", cfg.train.steps)
+
+
+def driver_checkpoint(cfg: ReproduceConfig, task: str) -> Path:
+    """The final checkpoint of the policy that drives the takeover episodes."""
+    return _final_checkpoint(Path(cfg.output_dir) / "driver" / task, cfg.takeover.driver_steps)
+
+
+def _final_checkpoint(run: Path, steps: int) -> Path:
     from lerobot.common.train_utils import get_step_checkpoint_dir
     from lerobot.utils.constants import PRETRAINED_MODEL_DIR
 
-    run = Path(cfg.output_dir) / "train" / task / variant / f"seed{seed}"
-    return get_step_checkpoint_dir(run, cfg.train.steps, cfg.train.steps) / PRETRAINED_MODEL_DIR
+    return get_step_checkpoint_dir(run, steps, steps) / PRETRAINED_MODEL_DIR
 
 
 def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
@@ -348,22 +386,46 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
     stages: list[Stage] = []
     recorded: set[str] = set()
     demos = f"{cfg.record.drift_std} rad drift" if cfg.record.drift_std else "clean"
+
+    def train_s(variant: str, steps: int) -> float:
+        return (
+            steps * cfg.train.batch_size / (TRAIN_SAMPLES_PER_CORE_S[scale][variant] * share**THREAD_SCALING)
+        )
+
+    record_s = RECORD_CORE_S_PER_EPISODE / min(cores, 2)
+    takeover = cfg.takeover.episodes
     for task, variant in pairs:
         if task not in recorded:
             recorded.add(task)
+            demo_stage = f"demos/{task}" if takeover else f"datasets/{task}"
             stages.append(
                 Stage(
-                    f"datasets/{task}", "record", (),
-                    cfg.record.episodes * RECORD_CORE_S_PER_EPISODE / min(cores, 2),
+                    demo_stage, "record", (), cfg.record.episodes * record_s,
                     f"{cfg.record.episodes} demonstrations, {demos}", task=task,
                 )
             )  # fmt: skip
+            if takeover:
+                steps = cfg.takeover.driver_steps
+                stages += [
+                    Stage(
+                        f"driver/{task}", "driver", (demo_stage,), train_s("standard", steps),
+                        f"{steps} steps of standard", task=task, variant="standard",
+                    ),
+                    Stage(
+                        f"takeover/{task}", "takeover", (f"driver/{task}",), takeover * record_s,
+                        f"{takeover} expert takeovers", task=task,
+                    ),
+                    Stage(
+                        f"datasets/{task}", "merge", (demo_stage, f"takeover/{task}"),
+                        (cfg.record.episodes + takeover) * MERGE_S_PER_EPISODE,
+                        f"{cfg.record.episodes} + {takeover} episodes merged", task=task,
+                    ),
+                ]  # fmt: skip
         samples = cfg.train.steps * cfg.train.batch_size
-        rate = TRAIN_SAMPLES_PER_CORE_S[scale][variant] * share**THREAD_SCALING
         trains = [f"train/{task}/{variant}/seed{s}" for s in range(cfg.train.seeds)]
         stages += [
             Stage(
-                name, "train", (f"datasets/{task}",), samples / rate,
+                name, "train", (f"datasets/{task}",), train_s(variant, cfg.train.steps),
                 f"{cfg.train.steps} steps ({samples} samples)", task=task, variant=variant, seed=seed,
             )
             for seed, name in enumerate(trains)
@@ -408,7 +470,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
         Stage(
             "report",
             "report",
-            tuple(s.name for s in stages if s.kind not in ("record", "train")),
+            tuple(s.name for s in stages if s.kind not in DATA_KINDS),
             REPORT_S,
             "HTML + Markdown",
         )

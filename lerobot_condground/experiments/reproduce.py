@@ -31,7 +31,15 @@ from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import versions
 from lerobot_condground.core.training import amp_flags
 from lerobot_condground.core.ur3e import SERVO_BEFORE_THE_SETTING
-from lerobot_condground.experiments.plan import ReproduceConfig, Stage, checkpoint_dir, makespan, plan
+from lerobot_condground.experiments.plan import (
+    TAKEOVER_SEED,
+    ReproduceConfig,
+    Stage,
+    checkpoint_dir,
+    driver_checkpoint,
+    makespan,
+    plan,
+)
 
 MANIFEST = "reproduce.json"
 LOG_STEP = re.compile(r"\bstep:(\d+(?:\.\d+)?)([KMB]?)\b")
@@ -51,28 +59,47 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
     out = Path(cfg.output_dir)
     here = out / stage.name
     task, variant, seed = stage.task, stage.variant, stage.seed
-    if stage.kind == "record":
-        return [
+    if stage.kind in ("record", "takeover"):
+        recording = [
             _script("condground"), "record", f"--env.task={task}", "--env.condition=clean",
             f"--env.servo={cfg.env.servo}", f"--env.observation_height={cfg.record.observation_height}",
             f"--env.observation_width={cfg.record.observation_width}",
-            f"--dataset.repo_id=local/{task}", f"--dataset.root={here}",
-            f"--dataset.num_episodes={cfg.record.episodes}", f"--drift.std={cfg.record.drift_std}",
-            "--progress=false",
+            f"--dataset.repo_id=local/{task}", f"--dataset.root={here}", "--progress=false",
         ]  # fmt: skip
-    if stage.kind == "train":
+        if stage.kind == "record":
+            return [
+                *recording,
+                f"--dataset.num_episodes={cfg.record.episodes}",
+                f"--drift.std={cfg.record.drift_std}",
+            ]
+        device = [f"--takeover.device={cfg.train.device}"] if cfg.train.device else []
+        return [
+            *recording, f"--dataset.num_episodes={cfg.takeover.episodes}", f"--seed={TAKEOVER_SEED}",
+            f"--takeover.policy_path={driver_checkpoint(cfg, task)}", *device,
+        ]  # fmt: skip
+    if stage.kind == "merge":
+        return [
+            _script("condground"),
+            "merge",
+            f"--roots=[{out / 'demos' / task},{out / 'takeover' / task}]",
+            f"--output.root={here}",
+            f"--output.repo_id=local/{task}",
+        ]
+    if stage.kind in ("train", "driver"):
         last = here / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if last.is_file():  # LeRobot's own resume: model, optimizer, scheduler, step and data order
             return [_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
         device = [f"--policy.device={cfg.train.device}"] if cfg.train.device else []
         # bf16 where this CPU runs it faster (core.training.amp_flags): a speed setting, so not pinned
         precision = amp_flags() if cfg.train.device == "cpu" else []
+        steps = _steps(cfg, stage)
+        data = out / ("datasets" if stage.kind == "train" else "demos") / task
         return [
             _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device, *precision,
             "--policy.push_to_hub=false", *cfg.policy_flags(), f"--dataset.repo_id=local/{task}",
-            f"--dataset.root={out / 'datasets' / task}", f"--batch_size={cfg.train.batch_size}",
-            f"--steps={cfg.train.steps}", f"--save_freq={cfg.train.save_freq}",
-            f"--log_freq={max(1, min(100, cfg.train.steps // 20))}", f"--num_workers={cfg.train.num_workers}",
+            f"--dataset.root={data}", f"--batch_size={cfg.train.batch_size}",
+            f"--steps={steps}", f"--save_freq={cfg.train.save_freq}",
+            f"--log_freq={max(1, min(100, steps // 20))}", f"--num_workers={cfg.train.num_workers}",
             "--wandb.enable=false", f"--seed={seed}", f"--output_dir={here}",
         ]  # fmt: skip
     if stage.kind in ("sweep", "sweep_counterbalanced"):
@@ -174,10 +201,14 @@ def _product(cfg: ReproduceConfig, stage: Stage) -> Path:
     here = Path(cfg.output_dir) / stage.name
     if stage.kind == "train":
         return checkpoint_dir(cfg, stage.task, stage.variant, stage.seed) / "model.safetensors"
+    if stage.kind == "driver":
+        return driver_checkpoint(cfg, stage.task) / "model.safetensors"
     return (
         here
         / {
             "record": "meta/info.json",
+            "takeover": "meta/info.json",
+            "merge": "meta/info.json",
             "sweep": "results.parquet",
             "sweep_counterbalanced": "results.parquet",
             "diagnose": "diagnostics.json",
@@ -234,7 +265,7 @@ def _log(cfg: ReproduceConfig, stage: Stage) -> Path:
 
 def _fraction(cfg: ReproduceConfig, stage: Stage) -> float:
     """How far a running stage is, from what it has written so far (training: its log; sweeps: their units)."""
-    if stage.kind == "train":
+    if stage.kind in ("train", "driver"):
         try:
             text = _log(cfg, stage).read_bytes()[-4096:].decode(errors="replace")
         except OSError:
@@ -243,7 +274,7 @@ def _fraction(cfg: ReproduceConfig, stage: Stage) -> float:
         if not steps:
             return 0.0
         value, unit = steps[-1]
-        return min(1.0, float(value) * {"": 1, "K": 1e3, "M": 1e6, "B": 1e9}[unit] / cfg.train.steps)
+        return min(1.0, float(value) * {"": 1, "K": 1e3, "M": 1e6, "B": 1e9}[unit] / _steps(cfg, stage))
     if stage.kind.startswith("sweep"):
         parts = Path(cfg.output_dir) / stage.name / "parts"
         done = sum(1 for _ in parts.rglob("*.parquet")) * cfg.eval.batch_size if parts.exists() else 0
@@ -251,11 +282,20 @@ def _fraction(cfg: ReproduceConfig, stage: Stage) -> float:
     return 0.0
 
 
+def _steps(cfg: ReproduceConfig, stage: Stage) -> int:
+    return cfg.train.steps if stage.kind == "train" else cfg.takeover.driver_steps
+
+
 def _prepare(cfg: ReproduceConfig, stage: Stage) -> None:
-    """A training killed before its first checkpoint left a directory lerobot-train refuses to reuse: it is
-    this stage's own, so it goes. Anything else resumes in place."""
+    """A training killed before its first checkpoint left a directory lerobot-train refuses to reuse, and a
+    merge killed after its rename (before its marker) one `condground merge` refuses to overwrite: each is this
+    stage's own, so it goes. Anything else resumes in place."""
     here = Path(cfg.output_dir) / stage.name
-    if stage.kind == "train" and here.exists() and not (here / "checkpoints" / "last").exists():
+    if not here.exists():
+        return
+    if stage.kind == "merge" or (
+        stage.kind in ("train", "driver") and not (here / "checkpoints" / "last").exists()
+    ):
         shutil.rmtree(here)
 
 

@@ -16,11 +16,13 @@ import pytest
 from helpers import BIN, read_json, run_cli
 from lerobot_condground.cli import main
 
-# Every kind of stage once (Task 2 and `full`: diagnose and probe run), each as small as it runs.
+# Every kind of stage once (Task 2 and `full`: diagnose and probe run; a DAgger round), each as small as it runs.
 TOY = [
     "--tasks=PickPlaceRandomBin-v0",
     "--train.variants=full",
     "--record.episodes=2",
+    "--takeover.episodes=1",
+    "--takeover.driver_steps=10",
     "--train.steps=40",
     "--train.save_freq=10",
     "--train.batch_size=2",
@@ -63,6 +65,26 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     assert "12000 rollouts" in text  # 3 training seeds x 20 conditions x 4 x 50
     assert "train/PickPlaceRandomBin-v0/standard/seed2" in text and "5 steps" in text
 
+    dagger = ["--takeover.episodes=100", "--record.episodes=100"]
+    assert main(["reproduce", "--preset=cpu", f"--output_dir={out}", "--dry_run=true", *dagger]) == 0
+    text = capsys.readouterr().out
+    assert "preset cpu: 38 stages (0 done)" in text
+    names = [line.split()[0] for line in text.splitlines()[2:-1]]
+    task = "PickPlaceRandomBin-v0"
+    assert names[:5] == [
+        f"demos/{task}",
+        f"driver/{task}",
+        f"takeover/{task}",
+        f"datasets/{task}",
+        f"train/{task}/standard/seed0",
+    ]
+    assert (
+        "6000 steps of standard" in text
+        and "100 expert takeovers" in text
+        and "100 + 100 episodes merged" in text
+    )
+    assert not out.exists()
+
     flags = "--train.extra_flags=--policy.dim_model=256"
     assert main(["reproduce", "--preset=cpu", f"--output_dir={out}", "--dry_run=true", flags]) == 0
     assert "do not account for --train.extra_flags='--policy.dim_model=256'" in capsys.readouterr().out
@@ -95,6 +117,9 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         ("--jobs=0", "--jobs=0 is not allowed"),
         ("--env.servo=fast", "--env.servo='fast' is not allowed; allowed: interpolated, direct"),
         ("--record.drift_std=0.2", "--record.drift_std=0.2 is not allowed; allowed: 0 (clean) to 0.15 rad"),
+        ("--takeover.episodes=-1", "--takeover.episodes=-1 is not allowed; allowed: a number >= 0"),
+        ("--takeover.episodes=100001", "--takeover.episodes=100001 is not allowed; allowed: 1 to 100000"),
+        ("--takeover.driver_steps=0", "--takeover.driver_steps=0 is not allowed; allowed: a number >= 1"),
     ],
 )
 def test_bad_input_is_one_error_before_work(tmp_path, capsys, flag, message):
@@ -148,6 +173,14 @@ def test_a_reproduction_from_before_recovery_data_continues_only_with_clean_demo
     check_same_settings(clean)
     assert "--drift.std=0.0" in command(clean, plan(clean)[0], 1)
 
+    # Nor does it have a takeover group: it trained on its demonstrations alone, and continues only so.
+    dagger = ReproduceConfig(output_dir=str(out), record=RecordSettings(drift_std=0.0))
+    dagger.takeover.episodes = 100
+    with pytest.raises(
+        ValueError, match="other settings \\(takeover: None -> \\{'episodes': 100, 'driver_steps': 6000\\}\\)"
+    ):
+        check_same_settings(dagger)
+
 
 def _commands(out, key: str) -> list[str]:
     """The command lines a stage's log shows, one per time the stage was started."""
@@ -176,10 +209,21 @@ def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
     recorded = (out / "stages" / "datasets__PickPlaceRandomBin-v0.json").stat().st_mtime_ns
 
     second = run_cli("condground", "reproduce", f"--output_dir={out}", "--jobs=2", *TOY).stdout
-    assert "7 stages (1 done)" in second
+    assert "10 stages (4 done)" in second
     assert "start: datasets/" not in second and "start: train/PickPlaceRandomBin-v0/full/seed0" in second
     assert (out / "stages" / "datasets__PickPlaceRandomBin-v0.json").stat().st_mtime_ns == recorded
-    assert len(_commands(out, "datasets__PickPlaceRandomBin-v0")) == 1
+    for stage in ("demos", "driver", "takeover", "datasets"):
+        assert len(_commands(out, f"{stage}__PickPlaceRandomBin-v0")) == 1
+    # The variants trained on the demonstrations and the takeover episodes the driver's states began, merged.
+    merged = read_json(out / "datasets" / "PickPlaceRandomBin-v0" / "meta" / "condground_record.json")
+    assert [episode["source"] for episode in merged["episodes"]] == [0, 0, 1]
+    driver = out / "driver" / "PickPlaceRandomBin-v0" / "checkpoints" / "000010" / "pretrained_model"
+    assert merged["sources"][1]["record"]["takeover"]["policy_path"] == str(driver)
+    assert merged["episodes"][2]["seed"] >= 500_000  # new layouts, none of the demonstrations'
+    assert (
+        "--dataset.root=" + str(out / "datasets" / "PickPlaceRandomBin-v0")
+        in _commands(out, "train__PickPlaceRandomBin-v0__full__seed0")[0]
+    )
     commands = _commands(out, "train__PickPlaceRandomBin-v0__full__seed0")
     assert len(commands) == 2 and "--resume=true" in commands[1]  # went on from its checkpoint
     assert (train / "checkpoints" / "000040" / "pretrained_model" / "model.safetensors").is_file()
@@ -193,7 +237,7 @@ def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
     assert "full_mixed (counterbalanced)" in report and "## Table II" in report
 
     third = run_cli("condground", "reproduce", f"--output_dir={out}", *TOY).stdout
-    assert "7 stages (7 done)" in third and "start:" not in third  # --jobs may change; nothing reruns
+    assert "10 stages (10 done)" in third and "start:" not in third  # --jobs may change; nothing reruns
 
     changed = run_cli("condground", "reproduce", f"--output_dir={out}", *TOY, "--train.steps=50", check=False)
     assert changed.returncode == 2
