@@ -81,7 +81,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         return [
             _script("condground"),
             "merge",
-            f"--roots=[{out / 'demos' / task},{out / 'takeover' / task}]",
+            f"--roots=[{','.join(str(out / name) for name in stage.after)}]",
             f"--output.root={here}",
             f"--output.repo_id=local/{task}",
         ]
@@ -93,11 +93,11 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         # bf16 where this CPU runs it faster (core.training.amp_flags): a speed setting, so not pinned
         precision = amp_flags() if cfg.train.device == "cpu" else []
         steps = _steps(cfg, stage)
-        data = out / ("datasets" if stage.kind == "train" else "demos") / task
+        (data,) = stage.after  # the dataset stage it trains on: the demonstrations (driver) or the merge
         return [
             _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device, *precision,
             "--policy.push_to_hub=false", *cfg.policy_flags(), f"--dataset.repo_id=local/{task}",
-            f"--dataset.root={data}", f"--batch_size={cfg.train.batch_size}",
+            f"--dataset.root={out / data}", f"--batch_size={cfg.train.batch_size}",
             f"--steps={steps}", f"--save_freq={cfg.train.save_freq}",
             f"--log_freq={max(1, min(100, steps // 20))}", f"--num_workers={cfg.train.num_workers}",
             "--wandb.enable=false", f"--seed={seed}", f"--output_dir={here}",
