@@ -15,9 +15,10 @@ It learns from demonstrations recorded with a 0.06 rad joint drift (DART, `condg
 demonstrations instead of 100: Task 1 70.3 % -> 78.0 % of 300 held-out rollouts (+7.7 [+1.5, +13.8],
 p = 0.019; the layouts beyond the bowl 28 % -> 73 %), Task 2 27.7 % -> 52.3 % (+24.7 [+17.0, +31.9],
 p = 9e-10); 400 add +4.3 [-2.4, +11.0] on Task 2 (p = 0.25). Recovery data are not in the paper.
-Not settled yet: on Task 1, 100 of these and 100 expert takeovers from a weak policy's states beat 200 of
-these trained beside them (87.7 % against 73.3 %, +14.3 [+8.5, +20.1], p = 2e-6), but that driver was a
-prompted policy and Task 2 is unmeasured (`condground reproduce --takeover.episodes` runs such a round).
+Not settled: on Task 1, 100 of these and 100 expert takeovers from a weak prompted policy's states beat 200
+of these trained beside them (87.7 % against 73.3 %, +14.3 [+8.5, +20.1], p = 2e-6), but takeovers from a
+`standard` driver, as `condground reproduce --takeover.episodes` runs the round, added nothing measurable at
+6000 steps on either task (Task 1 +2.7, p = 0.56; Task 2 -0.3 [-7.7, +7.1], p = 1.0).
 The quickstart, the learning-curve example, `reproduce --preset=cpu` and the benchmark
 all read it from here.
 """
