@@ -182,6 +182,34 @@ def test_a_reproduction_from_before_recovery_data_continues_only_with_clean_demo
         check_same_settings(dagger)
 
 
+def test_a_stage_killed_mid_way_leaves_only_what_its_rerun_can_take(tmp_path):
+    """What a killed stage left before its marker: a merge's renamed output (which `condground merge`
+    refuses to overwrite) and a training without a checkpoint go; a training with one and the recordings
+    (both resume in place) stay, as does everything outside the stage's own directory."""
+    from lerobot_condground.experiments.plan import ReproduceConfig, plan
+    from lerobot_condground.experiments.reproduce import _prepare
+
+    cfg = ReproduceConfig(output_dir=str(tmp_path))
+    cfg.takeover.episodes = 1
+    stages = {}
+    for stage in plan(cfg):
+        stages.setdefault(stage.kind, stage)
+    assert {"record", "driver", "takeover", "merge", "train"} <= set(stages)
+    left = {}
+    for kind, stage in stages.items():
+        here = tmp_path / stage.name
+        (here / "meta").mkdir(parents=True)
+        (here / "meta" / "info.json").write_text("{}")
+        left[kind] = here
+    (left["train"] / "checkpoints" / "last").mkdir(parents=True)
+    (tmp_path / "notes.txt").write_text("mine")
+    for stage in stages.values():
+        _prepare(cfg, stage)
+    gone = {kind for kind, here in left.items() if not here.exists()}
+    assert gone == {"merge", "driver"}  # the driver had no checkpoint yet
+    assert (left["train"] / "checkpoints" / "last").is_dir() and (tmp_path / "notes.txt").is_file()
+
+
 def _commands(out, key: str) -> list[str]:
     """The command lines a stage's log shows, one per time the stage was started."""
     return [line for line in (out / "logs" / f"{key}.log").read_text().splitlines() if line.startswith("$ ")]
