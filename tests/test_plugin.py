@@ -47,6 +47,52 @@ def test_subpackages_map_to_the_top_level_pillars():
         assert module.__file__.replace("\\", "/").endswith(f"/{folder}/__init__.py")
 
 
+def test_a_built_wheel_holds_every_module_of_the_source_tree(tmp_path):
+    """The editable install finds any module; a wheel (`pip install .`, a machine without the checkout)
+    holds only the packages pyproject lists, which once missed the policies' own folders."""
+    import shutil
+    import zipfile
+
+    root = Path(__file__).resolve().parents[1]
+    folders = {"envs": "lerobot_condground/envs", "policies": "lerobot_condground/policies"}
+    folders |= {"processors": "lerobot_condground/processors"}
+    # From a copy: setuptools reuses a checkout's build/ folder, which can hold what pyproject no longer lists.
+    source_tree = tmp_path / "src"
+    for top in ("lerobot_condground", "lerobot_policy_condground", *folders):
+        shutil.copytree(root / top, source_tree / top, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(root / name, source_tree / name)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            tmp_path,
+            ".",
+        ],
+        check=True,
+        cwd=source_tree,
+    )
+    (wheel,) = tmp_path.glob("*.whl")
+    packed = set(zipfile.ZipFile(wheel).namelist())
+    missing = []
+    for top in ("lerobot_condground", "lerobot_policy_condground", *folders):
+        for source in (root / top).rglob("*"):
+            if source.suffix not in {".py", ".j2"} or "__pycache__" in source.parts:
+                continue
+            relative = source.relative_to(root).as_posix()
+            if top in folders:
+                relative = relative.replace(top, folders[top], 1)
+            if relative not in packed:
+                missing.append(relative)
+    assert not missing, missing
+
+
 def test_cli_help_lists_commands_and_flags(capsys):
     from lerobot_condground.cli import main
 
