@@ -1,0 +1,101 @@
+"""The learning-curve set of a device run (examples/device_curve.sh) from the results it brought back.
+
+    mkdir -p outputs/device && tar xzf /work/.device/N/results.tgz -C outputs/device
+    python examples/device_curve.py --results=outputs/device --batch=32 --csv_dir=docs/learning-curve/gpu
+
+Writes `<csv_dir>/<task>_<variant>.csv` (minutes,steps,samples,success,n,ci_low,ci_high,seed: minutes of
+training from the run's progress bars, every swept checkpoint) and `<csv_dir>/rollouts.csv` (each rollout's
+layout and stages). A sweep stopped at its deadline counts the parts it finished, so `n` can be below the
+rollouts asked for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import pandas as pd
+
+from lerobot_condground.evaluation.results import read_table
+from lerobot_condground.evaluation.statistics import rate
+
+RUN = re.compile(r"(?P<task>.+-v\d+)_(?P<variant>[a-z_]+)_s(?P<seed>\d+)")
+
+
+def minutes_at(log: Path, step: int) -> float:
+    """Training minutes at `step` from the progress bar (at GPU rates it skips steps: the last line at or
+    before `step`). A device run is never resumed, so one bar counts from 0."""
+    seconds = {}
+    for done, clock in re.findall(r" (\d+)/\d+ \[(\d+(?::\d+){1,2})<", log.read_text(errors="replace")):
+        seconds.setdefault(int(done), sum(int(v) * 60**i for i, v in enumerate(reversed(clock.split(":")))))
+    before = [done for done in seconds if done <= step]
+    if not before:
+        raise SystemExit(f"{log}: no progress line up to step {step}")
+    return seconds[max(before)] / 60
+
+
+def outcomes(step_dir: Path) -> pd.DataFrame:
+    whole = step_dir / "results.parquet"
+    parts = sorted(step_dir.glob("parts/*/*/*.parquet")) if not whole.exists() else [whole]
+    return pd.concat([read_table(p) for p in parts]) if parts else pd.DataFrame()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--results", type=Path, required=True, help="the unpacked results.tgz")
+    parser.add_argument("--batch", type=int, required=True, help="the runs' --batch_size")
+    parser.add_argument("--csv_dir", type=Path, required=True)
+    args = parser.parse_args()
+    curves, rollouts = {}, []
+    for run in sorted((args.results / "eval").iterdir()):
+        match = RUN.fullmatch(run.name)
+        if not match:
+            raise SystemExit(f"{run}: not a <task>_<variant>_s<seed> run folder")
+        log = args.results / "train" / f"{run.name}.log"
+        for step_dir in sorted(run.iterdir()):
+            frame = outcomes(step_dir)
+            if frame.empty:
+                continue
+            step = int(step_dir.name)
+            r = rate(int(frame["success"].sum()), len(frame))
+            curves.setdefault((match["task"], match["variant"]), []).append(
+                {"minutes": round(minutes_at(log, step), 2), "steps": step,
+                 "samples": step * args.batch, "success": r["rate"], "n": r["n"], "ci_low": r["low"],
+                 "ci_high": r["high"], "seed": int(match["seed"])}
+            )  # fmt: skip
+            keep = ["layout_seed", "success", "pick", "lift", "place"]
+            rollouts.append(frame[keep].assign(task=match["task"], variant=match["variant"], step=step))
+    if not curves:
+        raise SystemExit(f"{args.results}: no swept checkpoint")
+    args.csv_dir.mkdir(parents=True, exist_ok=True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    for (task, variant), rows in curves.items():
+        table = pd.DataFrame(rows)
+        table.to_csv(args.csv_dir / f"{task}_{variant}.csv", index=False, float_format="%.4f")
+        print(f"{task} {variant}\n{table.to_string(index=False)}")
+        error = [100 * (table.success - table.ci_low), 100 * (table.ci_high - table.success)]
+        axis.errorbar(
+            table.minutes, 100 * table.success, yerr=error, marker="o", capsize=3, label=f"{task} {variant}"
+        )
+    axis.set(
+        xlabel="minutes of training on the GPU", ylabel="clean success, held-out layouts (%)", ylim=(0, 100)
+    )
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(args.csv_dir / "curves.png", dpi=120)
+    columns = ["task", "variant", "step", "layout_seed", "success", "pick", "lift", "place"]
+    pd.concat(rollouts)[columns].astype({"success": int, "pick": int, "lift": int, "place": int}).to_csv(
+        args.csv_dir / "rollouts.csv", index=False
+    )
+
+
+if __name__ == "__main__":
+    main()
