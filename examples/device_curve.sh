@@ -62,7 +62,7 @@ for T in $TASKS; do
   done
 done
 wait
-# A merge copies every video (about 90 s for 200 episodes at 144x192 there): the tasks' merges at once.
+# A merge copies every video (about 95 s for 200 episodes at 144x192 there): the tasks' merges at once.
 for T in $TASKS; do
   roots=$(for ((k = 0; k < SHARDS; k++)); do printf '%s,' "$WORK/data/${T}_$k"; done)
   if ((SHARDS == 1)); then
