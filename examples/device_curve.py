@@ -1,6 +1,6 @@
 """The learning-curve set of a device run (examples/device_curve.sh) from the results it brought back.
 
-    mkdir -p outputs/device && tar xzf /work/.device/N/results.tgz -C outputs/device
+    mkdir -p outputs/device && tar xzf "$FILES_AT/results.tgz" -C outputs/device   # FILES_AT: the call's files_at
     python examples/device_curve.py --results=outputs/device --batch=32 --csv_dir=docs/learning-curve/gpu
 
 Writes `<csv_dir>/<task>_<variant>.csv` (minutes,steps,samples,success,n,ci_low,ci_high,seed: minutes of
@@ -15,6 +15,7 @@ import argparse
 import re
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import pandas as pd
 
 from lerobot_condground.evaluation.results import read_table
@@ -71,11 +72,6 @@ def main() -> None:
     if not curves:
         raise SystemExit(f"{args.results}: no swept checkpoint")
     args.csv_dir.mkdir(parents=True, exist_ok=True)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     figure, axis = plt.subplots(figsize=(6, 3.5))
     for (task, variant), rows in curves.items():
         table = pd.DataFrame(rows)
