@@ -17,23 +17,12 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import pandas as pd
+from levers import elapsed_minutes  # the script's own folder is on sys.path
 
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import rate
 
 RUN = re.compile(r"(?P<task>.+-v\d+)_(?P<variant>[a-z_]+)_s(?P<seed>\d+)")
-
-
-def minutes_at(log: Path, step: int) -> float:
-    """Training minutes at `step` from the progress bar (at GPU rates it skips steps: the last line at or
-    before `step`). A device run is never resumed, so one bar counts from 0."""
-    seconds = {}
-    for done, clock in re.findall(r" (\d+)/\d+ \[(\d+(?::\d+){1,2})<", log.read_text(errors="replace")):
-        seconds.setdefault(int(done), sum(int(v) * 60**i for i, v in enumerate(reversed(clock.split(":")))))
-    before = [done for done in seconds if done <= step]
-    if not before:
-        raise SystemExit(f"{log}: no progress line up to step {step}")
-    return seconds[max(before)] / 60
 
 
 def outcomes(step_dir: Path) -> pd.DataFrame:
@@ -50,6 +39,10 @@ def main() -> None:
     parser.add_argument("--batch", type=int, required=True, help="the runs' --batch_size")
     parser.add_argument("--csv_dir", type=Path, required=True)
     args = parser.parse_args()
+    if not (args.results / "eval").is_dir():
+        raise SystemExit(
+            f"--results={args.results}: no eval/ folder; pass the folder results.tgz was unpacked into"
+        )
     curves, rollouts = {}, []
     for run in sorted((args.results / "eval").iterdir()):
         match = RUN.fullmatch(run.name)
@@ -63,7 +56,7 @@ def main() -> None:
             step = int(step_dir.name)
             r = rate(int(frame["success"].sum()), len(frame))
             curves.setdefault((match["task"], match["variant"]), []).append(
-                {"minutes": round(minutes_at(log, step), 2), "steps": step,
+                {"minutes": round(elapsed_minutes(log, step), 2), "steps": step,
                  "samples": step * args.batch, "success": r["rate"], "n": r["n"], "ci_low": r["low"],
                  "ci_high": r["high"], "seed": int(match["seed"])}
             )  # fmt: skip

@@ -161,26 +161,28 @@ def sweep_all(args, todo: list[tuple[Path, Path]]) -> None:
     run_all(commands, args.jobs)
 
 
-def elapsed_minutes(log: Path, step: int, total: int) -> float:
+def elapsed_minutes(log: Path, step: int, total: int | None = None) -> float:
     """Wall-clock minutes of training at `step`, from the progress bars `condground train` logs. A resumed
     run's bar counts the steps left from 0; the minutes add up over the segments, each counted up to the
-    checkpoint the next one resumed from (steps past it were lost with the run that made them)."""
-    elapsed: dict[tuple[int, int], float] = {}  # (steps left at the segment's start, step in it) -> minutes
+    checkpoint the next one resumed from (steps past it were lost with the run that made them). At GPU rates
+    tqdm skips steps: the last line at or before the step counts. `total` defaults to the first bar's length
+    (right for a run never resumed)."""
+    elapsed: dict[int, dict[int, float]] = {}  # steps left at the segment's start -> {step in it: minutes}
     for done, left, clock in re.findall(
         r" (\d+)/(\d+) \[(\d+(?::\d+){1,2})<", log.read_text(errors="replace")
     ):
         seconds = sum(int(v) * 60**i for i, v in enumerate(reversed(clock.split(":"))))
-        elapsed.setdefault((int(left), int(done)), seconds / 60)
-    starts = sorted({total - left for left, _ in elapsed})  # the step each segment started from
+        elapsed.setdefault(int(left), {}).setdefault(int(done), seconds / 60)
+    total = total or max(elapsed, default=0)
+    starts = sorted(total - left for left in elapsed)  # the step each segment started from
     minutes = 0.0
     for i, start in enumerate(starts):
         stop = starts[i + 1] if i + 1 < len(starts) else total
-        key = (total - start, min(step, stop) - start)
-        if key not in elapsed:
-            raise SystemExit(
-                f"{log}: no progress line at step {key[1]}/{key[0]} of the run from step {start}"
-            )
-        minutes += elapsed[key]
+        lines, upto = elapsed[total - start], min(step, stop) - start
+        before = [done for done in lines if done <= upto]
+        if not before or max(lines) < upto:
+            raise SystemExit(f"{log}: the run from step {start} has no progress line at step {upto + start}")
+        minutes += lines[max(before)]
         if step <= stop:
             return minutes
     raise SystemExit(f"{log}: step {step} is past the run's {total} steps")
