@@ -16,6 +16,9 @@ checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes
 (replacing an earlier row of the same lever and task), every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`) and every pooled rollout's outcome (`<csv stem>_rollouts.csv`, to re-pair
 after outputs/ is gone), and prints each arm's pooled rate; without --lever the baseline is measured alone.
+With --published_baseline the baseline is not trained or evaluated: its pooled rollouts are read from
+`<csv stem>_rollouts.csv` (an earlier session's runs of that name, on a recording made again from the same
+seeds: recording is deterministic).
 With --heldout, `condground fit` of each run's last checkpoint on its first training demonstrations and on
 the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
@@ -255,7 +258,19 @@ def merge_csv(
 
 
 def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
-    frame = read_table(args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}" / "results.parquet")
+    if args.published_baseline and arm == args.baseline:
+        path = args.csv.with_name(f"{args.csv.stem}_rollouts.csv")
+        table = pd.read_csv(path)
+        frame = table[table["lever"].eq(arm) & table["task"].eq(args.task) & table["seed"].eq(seed)]
+        frame = frame[frame["step"].eq(step)]
+        if frame.empty:
+            raise SystemExit(
+                f"--published_baseline: {path} has no rollouts of {arm} on {args.task}, seed {seed}, step {step}"
+            )
+    else:
+        frame = read_table(
+            args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}" / "results.parquet"
+        )
     return frame.sort_values("layout_seed").reset_index(drop=True)
 
 
@@ -295,6 +310,8 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
             for step in pooled_steps(args, arm):
                 frame = outcomes(args, arm, seed, step)
                 columns.append(frame[["layout_seed", "success"]])
+                if args.published_baseline and arm == args.baseline:
+                    continue  # its rows are already in the tables
                 per_rollout.append(columns[-1].assign(lever=arm, task=args.task, seed=seed, step=step))
                 r = rate(int(frame["success"].sum()), len(frame))
                 per_checkpoint.append(
@@ -322,14 +339,15 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
     if rows:
         merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
-    mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, arms)
+    own = [arm for arm in arms if not (args.published_baseline and arm == args.baseline)]
+    mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, own)
     # Every pooled rollout, so a later session can re-pair these arms after outputs/ is gone.
     rollouts = pd.concat(per_rollout, ignore_index=True)[
         ["lever", "task", "seed", "step", "layout_seed", "success"]
     ]
     merge_csv(
         args.csv.with_name(f"{args.csv.stem}_rollouts.csv"), rollouts.astype({"success": int}).to_dict("records"),
-        args.task, arms,
+        args.task, own,
     )  # fmt: skip
     plot_success(
         mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),
@@ -341,7 +359,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
     if rows:
         print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
     if args.train_layouts:
-        fit_vs_heldout(args, arms)
+        fit_vs_heldout(args, {arm: arms[arm] for arm in own})
 
 
 def fit_vs_heldout(args, arms: dict[str, list[str]]) -> None:
@@ -449,6 +467,12 @@ def main() -> None:
         help="the baseline arm's name in run folders and tables (e.g. the "
         "lever an earlier wave adopted, whose runs it reuses)",
     )
+    parser.add_argument(
+        "--published_baseline",
+        action="store_true",
+        help="pair against the baseline's rollouts in <csv stem>_rollouts.csv (an earlier session's runs on "
+        "the same recording) instead of training and evaluating it again",
+    )
     parser.add_argument("--seeds", default="0,1")
     parser.add_argument("--steps", type=int, default=CPU_STEPS, help="the configuration's budget by default")
     parser.add_argument("--every", type=int, default=2000)
@@ -479,18 +503,21 @@ def main() -> None:
     args.flags = shlex.split(args.flags)
     arms = parse_levers(args.lever, args.baseline)
     args.budget = budgets(args, arms)
+    runs = {
+        arm: flags for arm, flags in arms.items() if not (args.published_baseline and arm == args.baseline)
+    }
     if args.stage in ("all", "train"):
-        train_all(args, arms)
+        train_all(args, runs)
     if args.stage in ("all", "evaluate"):
-        evaluate_all(args, arms)
+        evaluate_all(args, runs)
     if args.stage in ("all", "analyse"):
         analyse(args, arms)
     if args.stage in ("all", "fit") and args.heldout is not None:
-        fit_all(args, arms)
+        fit_all(args, runs)
     if args.stage in ("all", "failures"):
-        failures_all(args, arms)
+        failures_all(args, runs)
     if args.stage in ("all", "curve") and args.curve:
-        curves(args, arms)
+        curves(args, runs)
 
 
 if __name__ == "__main__":
