@@ -257,8 +257,13 @@ def merge_csv(
     return table
 
 
+def published(args, arm: str) -> bool:
+    """Whether the arm's rollouts come from the published tables (--published_baseline) rather than a run."""
+    return args.published_baseline and arm == args.baseline
+
+
 def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
-    if args.published_baseline and arm == args.baseline:
+    if published(args, arm):
         path = args.csv.with_name(f"{args.csv.stem}_rollouts.csv")
         table = pd.read_csv(path)
         frame = table[table["lever"].eq(arm) & table["task"].eq(args.task) & table["seed"].eq(seed)]
@@ -310,7 +315,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
             for step in pooled_steps(args, arm):
                 frame = outcomes(args, arm, seed, step)
                 columns.append(frame[["layout_seed", "success"]])
-                if args.published_baseline and arm == args.baseline:
+                if published(args, arm):
                     continue  # its rows are already in the tables
                 per_rollout.append(columns[-1].assign(lever=arm, task=args.task, seed=seed, step=step))
                 r = rate(int(frame["success"].sum()), len(frame))
@@ -339,7 +344,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
     if rows:
         merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
-    own = [arm for arm in arms if not (args.published_baseline and arm == args.baseline)]
+    own = [arm for arm in arms if not published(args, arm)]
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, own)
     # Every pooled rollout, so a later session can re-pair these arms after outputs/ is gone.
     rollouts = pd.concat(per_rollout, ignore_index=True)[
@@ -503,9 +508,7 @@ def main() -> None:
     args.flags = shlex.split(args.flags)
     arms = parse_levers(args.lever, args.baseline)
     args.budget = budgets(args, arms)
-    runs = {
-        arm: flags for arm, flags in arms.items() if not (args.published_baseline and arm == args.baseline)
-    }
+    runs = {arm: flags for arm, flags in arms.items() if not published(args, arm)}
     if args.stage in ("all", "train"):
         train_all(args, runs)
     if args.stage in ("all", "evaluate"):
