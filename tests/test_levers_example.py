@@ -1,5 +1,5 @@
-"""examples/levers.py turns training logs into the wall-clock minutes of every published curve; the minutes must
-add up over resumed runs and survive tqdm skipping steps at GPU rates."""
+"""examples/levers.py, which every published lever and curve comes from: the wall-clock minutes it reads from
+training logs (resumed runs, tqdm skipping steps at GPU rates) and its pairing against a published baseline."""
 
 import importlib.util
 from pathlib import Path
@@ -44,3 +44,54 @@ def test_gpu_logs_skip_steps_and_a_step_not_reached_is_refused(levers, tmp_path)
     cut.write_text("\r".join(bar(k, 1500, k) for k in range(0, 800)))  # still training
     with pytest.raises(SystemExit, match="no progress line at step 1000"):
         levers.elapsed_minutes(cut, 1000)
+
+
+def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_path):
+    """--published_baseline reads the baseline's pooled rollouts from the rollouts table, pairs the lever's sweeps
+    against them layout by layout, and leaves the baseline's published rows as they were."""
+    import subprocess
+    import sys
+
+    import numpy as np
+    import pandas as pd
+
+    from lerobot_condground.evaluation.results import TABLE_COLUMNS, write_table
+
+    task, layouts, rng = "PickPlaceFixedBin-v0", range(1_000_000, 1_000_020), np.random.default_rng(0)
+    docs, out = tmp_path / "docs", tmp_path / "out"
+    docs.mkdir()
+    published = pd.DataFrame(
+        [{"lever": "base", "task": task, "seed": seed, "step": step, "layout_seed": layout, "success": int(rng.random() < 0.4)}
+         for seed in (0, 1) for step in (4, 5, 6) for layout in layouts]
+    )  # fmt: skip
+    published.to_csv(docs / "levers_rollouts.csv", index=False)
+    lever = {}
+    for seed in (0, 1):
+        for step in (4, 5, 6):
+            success = rng.random(len(layouts)) < 0.8
+            lever[(seed, step)] = success
+            rows = pd.DataFrame({c: [None] * len(layouts) for c in TABLE_COLUMNS})
+            rows = rows.assign(layout_seed=list(layouts)[::-1], success=success[::-1])  # unsorted on disk
+            write_table(
+                rows, out / "eval" / f"{task}_standard_big_s{seed}" / f"{step:06d}" / "results.parquet"
+            )
+    command = [
+        sys.executable, str(ROOT / "examples" / "levers.py"), f"--task={task}", "--data=unused", "--baseline=base",
+        "--published_baseline", "--steps=6", "--every=1", "--seeds=0,1", f"--out={out}", "--lever=big=--policy.dim_model=512",
+        f"--csv={docs / 'levers.csv'}", "--stage=analyse",
+    ]  # fmt: skip
+    subprocess.run(command, check=True, capture_output=True, text=True)
+    row = pd.read_csv(docs / "levers.csv").iloc[0]
+    assert (row["lever"], row["baseline_arm"], row["n"]) == ("big", "base", 120)
+    assert row["baseline"] == pytest.approx(published["success"].mean(), abs=1e-4)
+    assert row["treated"] == pytest.approx(np.mean([s.mean() for s in lever.values()]), abs=1e-4)
+    rollouts = pd.read_csv(docs / "levers_rollouts.csv")
+    kept = rollouts[rollouts["lever"].eq("base")].reset_index(drop=True)
+    pd.testing.assert_frame_equal(kept, published)
+    assert rollouts["lever"].eq("big").sum() == 120
+    assert not (out / "train").exists()  # nothing trained or evaluated for the baseline
+
+    wrong = [c.replace("--baseline=base", "--baseline=other") for c in command]
+    refused = subprocess.run(wrong, capture_output=True, text=True)
+    assert refused.returncode != 0
+    assert "has no rollouts of other" in refused.stderr
