@@ -2,9 +2,15 @@
 training logs (resumed runs, tqdm skipping steps at GPU rates) and its pairing against a published baseline."""
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
+
+from lerobot_condground.evaluation.results import TABLE_COLUMNS, write_table
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,14 +55,6 @@ def test_gpu_logs_skip_steps_and_a_step_not_reached_is_refused(levers, tmp_path)
 def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_path):
     """--published_baseline reads the baseline's pooled rollouts from the rollouts table, pairs the lever's sweeps
     against them layout by layout, and leaves the baseline's published rows as they were."""
-    import subprocess
-    import sys
-
-    import numpy as np
-    import pandas as pd
-
-    from lerobot_condground.evaluation.results import TABLE_COLUMNS, write_table
-
     task, layouts, rng = "PickPlaceFixedBin-v0", range(1_000_000, 1_000_020), np.random.default_rng(0)
     docs, out = tmp_path / "docs", tmp_path / "out"
     docs.mkdir()
