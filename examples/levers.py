@@ -266,8 +266,12 @@ def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
     if published(args, arm):
         path = args.csv.with_name(f"{args.csv.stem}_rollouts.csv")
         table = pd.read_csv(path)
-        frame = table[table["lever"].eq(arm) & table["task"].eq(args.task) & table["seed"].eq(seed)]
-        frame = frame[frame["step"].eq(step)]
+        frame = table[
+            table["lever"].eq(arm)
+            & table["task"].eq(args.task)
+            & table["seed"].eq(seed)
+            & table["step"].eq(step)
+        ]
         if frame.empty:
             raise SystemExit(
                 f"--published_baseline: {path} has no rollouts of {arm} on {args.task}, seed {seed}, step {step}"
