@@ -24,8 +24,8 @@ the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
 seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
 `condground failures` classifies each failed rollout of each run's last checkpoint on the held-out layouts
-(`<csv stem>_failures.csv`: counts per cause, grasp offsets at closing). With --curve=ARM:NAME, every
-checkpoint of that arm's runs on the held-out layouts: the learning curve `<csv dir>/<task>_<NAME>.csv`.
+(`<csv stem>_failures.csv`: counts per cause, grasp offsets at closing, how a lifted target was lost).
+With --curve=ARM:NAME, every checkpoint of that arm's runs on the held-out layouts: the learning curve `<csv dir>/<task>_<NAME>.csv`.
 """
 
 from __future__ import annotations
@@ -451,11 +451,14 @@ def failures_all(args, arms: dict[str, list[str]]) -> None:
     )  # fmt: skip
     for arm, seed, out in todo:
         result = json.loads((out / "failures.json").read_text())
-        offsets = result["first_close_offset_cm"]
+        offsets, carry = result["first_close_offset_cm"], result["carry"]
         rows.append(
             {"lever": arm, "task": args.task, "seed": seed, "step": args.budget[arm][0], "rollouts": result["rollouts"],
              **result["causes"], "regrasped": result["regrasped"], "stalled": result["stalled"],
-             "close_offset_cm_success": offsets["success_median"], "close_offset_cm_failure": offsets["failure_median"]}
+             "close_offset_cm_success": offsets["success_median"], "close_offset_cm_failure": offsets["failure_median"],
+             "released": carry["released"], "slipped": carry["slipped"], "held_to_end": carry["held_to_end"],
+             "release_offset_cm_success": carry["release_offset_cm"]["success_median"],
+             "release_offset_cm_failure": carry["release_offset_cm"]["failure_median"]}
         )  # fmt: skip
     merge_csv(args.csv.with_name(f"{args.csv.stem}_failures.csv"), rows, args.task, arms, fmt="%.2f")
     print(pd.DataFrame(rows).to_string(index=False))

@@ -8,6 +8,9 @@ gripper command and the stage flags. Events:
   from the tool-centre point to the target's centre then (cm), its *height* the vertical one;
 - *pushed*: how far the target moved on the table before the first closing (cm);
 - *stalled*: the episode ran to its step limit and the tool moved less than 1 cm over its last 2 s;
+- after the lift (the target held above 4 cm once), the *release*: the first time the gripper command
+  crosses back to open; its offset is the horizontal distance from the target to the target receptacle's
+  centre then (cm). Without a release the target is either still held at the end or slipped out closed;
 - with a phase predictor (act_modified), the phase it predicted at every action chunk beside the world's
   phase then (place once the target is held or placed, pick before); *place_phase_unheld* counts the
   chunks it predicted place while the target was neither held nor placed: the prompt switched to the
@@ -18,7 +21,8 @@ Each failed rollout gets one cause, the first that applies: `unstable` (physics)
 outside the bowl), `picked_not_lifted`, `pushed_away` (the target moved > 2 cm before any closing),
 `closed_off_target` (closed beside it and never picked it; its offset says by how much), `never_closed`.
 Writes `episodes.parquet` (one row per rollout with every measurement) and `failures.json` (counts per
-cause, offsets at closing).
+cause, offsets at closing, and `carry`: the lifted-not-placed rollouts split into released, slipped out
+and held to the end).
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ PUSHED_CM = 2.0
 STALL_SECONDS = 2.0
 STALL_CM = 1.0
 TARGET = 1  # the target object's entity label
+TARGET_RECEPTACLE = 2
 
 
 @dataclass
@@ -88,6 +93,9 @@ class Tracer:
         self.tool: list[list[np.ndarray]] = [[] for _ in range(n)]
         self.active = np.zeros(n, dtype=bool)
         self.phases: list[list[tuple[int, int, int]]] = [[] for _ in range(n)]  # (step, predicted, world)
+        # After the lift: the offset from the target receptacle (cm) and the step of the first opening.
+        self.release: list[tuple[float, int] | None] = [None] * n
+        self.held = np.zeros(n, dtype=bool)
         self.step = 0
 
     def __call__(self, step: int, batch, observations: list[dict], active: np.ndarray) -> None:
@@ -103,7 +111,11 @@ class Tracer:
                 self.closings[i].append(
                     (float(np.hypot(*(tool - target)[:2]) * 100), float((tool - target)[2] * 100), step)
                 )
+            if not closed and self.closed[i] and env.tracker.lift and self.release[i] is None:
+                receptacle = env.entity_pose(TARGET_RECEPTACLE)[0]
+                self.release[i] = (float(np.hypot(*(target - receptacle)[:2]) * 100), step)
             self.closed[i] = closed
+            self.held[i] = env.tracker.held == TARGET
             if not self.closings[i]:
                 self.pushed[i] = max(self.pushed[i], float(np.hypot(*(target - self.start[i])[:2]) * 100))
 
@@ -129,6 +141,9 @@ class Tracer:
             "min_close_offset_cm": min(offsets) if offsets else float("nan"),
             "pushed_cm": float(self.pushed[i]),
             "stalled": bool(truncated and len(tail) >= self.stall_steps and path < STALL_CM),
+            "release_offset_cm": self.release[i][0] if self.release[i] else float("nan"),
+            "release_step": self.release[i][1] if self.release[i] else -1,
+            "held_at_end": bool(self.held[i]),
             **self._phase_measurements(i),
         }
 
@@ -186,6 +201,17 @@ def summarize(rows) -> dict:
             "failure_median": float(closed[~closed["success"]]["first_close_offset_cm"].median()),
         },
     }
+    carried = failed[failed["cause"] == "lifted_not_placed"]
+    released = carried["release_step"] >= 0
+    result["carry"] = {
+        "released": int(released.sum()),
+        "slipped": int((~released & ~carried["held_at_end"]).sum()),
+        "held_to_end": int((~released & carried["held_at_end"]).sum()),
+        "release_offset_cm": {
+            "success_median": float(rows[rows["success"]]["release_offset_cm"].median()),
+            "failure_median": float(carried["release_offset_cm"].median()),
+        },
+    }
     if "place_phase_unheld" in rows:
         result["phase"] = {
             "agreement": float(rows["phase_agreement"].mean()),
@@ -204,6 +230,12 @@ def format_failures(result: dict) -> str:
         f"first closing, median offset from the target: {offsets['success_median']:.1f} cm in successes, "
         f"{offsets['failure_median']:.1f} cm in failures; failures that re-grasped: {result['regrasped']}, "
         f"stalled: {result['stalled']}"
+    )
+    carry = result["carry"]
+    lines.append(
+        f"lifted, not placed: {carry['released']} released (median {carry['release_offset_cm']['failure_median']:.1f} cm "
+        f"from the receptacle's centre, successes {carry['release_offset_cm']['success_median']:.1f} cm), "
+        f"{carry['slipped']} slipped out closed, {carry['held_to_end']} held to the end"
     )
     if phase := result.get("phase"):
         lines.append(

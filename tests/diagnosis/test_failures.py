@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from helpers import read_json, run_cli
-from lerobot_condground.diagnosis.failures import CAUSES, Tracer, cause
+from lerobot_condground.diagnosis.failures import CAUSES, Tracer, cause, summarize
 from lerobot_condground.evaluation.checkpoints import describe_checkpoint
 from lerobot_condground.evaluation.rollout import EnvSpec, run_episodes
 
@@ -22,6 +22,9 @@ def test_the_expert_closes_once_on_the_cube_without_pushing_it():
         assert outcome["success"] and measured["closings"] == 1, measured
         assert measured["first_close_offset_cm"] < 1.0 and measured["pushed_cm"] < 0.5, measured
         assert 0 < measured["first_close_step"] < outcome["steps"], measured
+        # It lets go once, over the bowl's centre, after it closed.
+        assert measured["first_close_step"] < measured["release_step"] < outcome["steps"], measured
+        assert measured["release_offset_cm"] < 2.0 and not measured["held_at_end"], measured
         assert cause({**outcome, **measured}) == "success"
 
 
@@ -92,3 +95,28 @@ def test_bad_input_is_one_line(tiny_checkpoints, tmp_path, capsys):
         err = capsys.readouterr().err
         assert code == 2 and message in err.strip().splitlines()[-1], err
         assert not (tmp_path / "out").exists()
+
+
+def test_the_carry_splits_lifted_not_placed_into_released_slipped_and_held():
+    nan = float("nan")
+    rows = pd.DataFrame(
+        {
+            "success": [True, False, False, False, False],
+            "cause": [
+                "success",
+                "lifted_not_placed",
+                "lifted_not_placed",
+                "lifted_not_placed",
+                "never_closed",
+            ],
+            "closings": [1, 1, 2, 1, 0],
+            "stalled": [False] * 5,
+            "first_close_offset_cm": [0.5, 1.0, 2.0, 1.5, nan],
+            "release_step": [120, 150, -1, -1, -1],
+            "release_offset_cm": [0.8, 9.0, nan, nan, nan],
+            "held_at_end": [False, False, False, True, False],
+        }
+    )
+    carry = summarize(rows)["carry"]
+    assert (carry["released"], carry["slipped"], carry["held_to_end"]) == (1, 1, 1)
+    assert carry["release_offset_cm"] == {"success_median": 0.8, "failure_median": 9.0}
