@@ -89,21 +89,22 @@ PRESETS: dict[str, dict] = {
 }
 
 # Rates measured on the 2-core development machine (AMD EPYC, AVX2), per core, by frame size of the preset's
-# model. Training samples/s: the cpu reproduction's own runs (docs/reproduction/cpu/stages, one core per run,
-# two runs side by side: standard 38 and 41, full 29 and 24, augmentation 25; augmentation_attention trained as
-# fast as augmentation on the Xeon below); `condground bench`'s policy cost at ACT's default size (2 cores,
-# halved) for the paper preset. An AVX-512/AMX Xeon trained the cpu model about twice as fast (recorded 1.3x).
+# model. Training samples/s, cpu: `standard` at ACT's own size from the learning runs (1.0 step/s of batch 16 a
+# run, two side by side: docs/learning-curve/v2, nineteenth session), the other variants scaled by their rate
+# against `standard` in one `condground bench` run (augmentation 0.96, augmentation_attention 0.96, full 0.78;
+# docs/measurements.md); paper: `condground bench`'s policy cost at ACT's default size (2 cores, halved).
 TRAIN_SAMPLES_PER_CORE_S = {
-    "cpu": {"standard": 39.0, "augmentation": 25.0, "augmentation_attention": 25.0, "full": 26.0},
+    "cpu": {"standard": 16.0, "augmentation": 15.4, "augmentation_attention": 15.3, "full": 12.4},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
 }
-# Two torch threads trained the CPU configuration at 60 samples/s against 41 on one (quickstart, docs/measurements.md):
-# a run on t threads goes t**0.55 times as fast.
+# Two torch threads trained the smaller CPU configuration (before 2026-12-04) at 60 samples/s against 41 on one
+# (quickstart, docs/measurements.md): a run on t threads goes t**0.55 times as fast.
 THREAD_SCALING = 0.55
-# Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): the cpu reproduction's sweeps at
-# 96x128 (500 rollouts of up to 300 steps in 36 to 41 minutes on one worker, one in 67), the sweep
-# benchmark at 240x320 (25.7 per minute for 100-step episodes; up to 300 here).
-ROLLOUTS_PER_CORE_MIN = {"cpu": 13.0, "paper": 8.6}
+# Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): at ACT's own size, 96x128, six sweeps
+# of 50 Task 2 rollouts (a 60 % policy: shorter than a failing one's 300 steps, so an upper bound) in 14.8
+# minutes two at a time (nineteenth session; Task 1 at 75 %: 12.3 minutes);
+# the sweep benchmark at 240x320 (25.7 per minute for 100-step episodes; up to 300 here).
+ROLLOUTS_PER_CORE_MIN = {"cpu": 10.0, "paper": 8.6}
 # 100 clean episodes with labels and video took 395 s on 2 cores; counted as one core's 7.9 s per episode,
 # spread over at most 2 (one recording process; the software renderer's threads are what use the second).
 RECORD_CORE_S_PER_EPISODE = 7.9

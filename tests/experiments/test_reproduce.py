@@ -15,6 +15,7 @@ import pytest
 
 from helpers import BIN, read_json, run_cli
 from lerobot_condground.cli import main
+from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS
 
 # Every kind of stage once (Task 2 and `full`: diagnose and probe run; a DAgger round), each as small as it runs.
 TOY = [
@@ -55,7 +56,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     assert "estimated time left:" in text and "extra_flags" not in text
     # the CPU configuration's recovery data and budget (core.training)
     assert "datasets/PickPlaceRandomBin-v0" in text and "200 demonstrations, 0.06 rad drift" in text
-    assert "12000 steps (192000 samples)" in text
+    assert f"{CPU_STEPS} steps ({CPU_STEPS * CPU_BATCH_SIZE} samples)" in text
     assert not out.exists()
 
     assert (
@@ -79,7 +80,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         f"train/{task}/standard/seed0",
     ]
     assert (
-        "6000 steps of standard" in text
+        f"{CPU_STEPS // 2} steps of standard" in text
         and "100 expert takeovers" in text
         and "100 + 100 episodes merged" in text
     )
@@ -177,7 +178,8 @@ def test_a_reproduction_from_before_recovery_data_continues_only_with_clean_demo
     dagger = ReproduceConfig(output_dir=str(out), record=RecordSettings(drift_std=0.0))
     dagger.takeover.episodes = 100
     with pytest.raises(
-        ValueError, match="other settings \\(takeover: None -> \\{'episodes': 100, 'driver_steps': 6000\\}\\)"
+        ValueError,
+        match=f"other settings \\(takeover: None -> \\{{'episodes': 100, 'driver_steps': {CPU_STEPS // 2}\\}}\\)",
     ):
         check_same_settings(dagger)
 
