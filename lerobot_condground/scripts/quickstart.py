@@ -1,4 +1,4 @@
-"""`condground quickstart`: the whole pipeline, trained from scratch, in under an hour on 2 CPU cores.
+"""`condground quickstart`: the whole pipeline, trained from scratch, in about an hour on 2 CPU cores (not yet timed).
 
 1. records expert demonstrations of each task (LeRobotDatasets with masks, phases, prompts): Task 1's
    with the configuration's joint drift (recovery data) to learn from, a few of Task 2 to look at,
