@@ -25,7 +25,8 @@ the held-out recording (`<csv stem>_fit.csv`, per segment). With
 seeds 0, 1, ...), and `--fit_vs_heldout_csv` gets its success there beside the held-out success. Last,
 `condground failures` classifies each failed rollout of each run's last checkpoint on the held-out layouts
 (`<csv stem>_failures.csv`: counts per cause, grasp offsets at closing, how a lifted target was lost).
-With --curve=ARM:NAME, every checkpoint of that arm's runs on the held-out layouts: the learning curve `<csv dir>/<task>_<NAME>.csv`.
+With --curve=ARM:NAME, every checkpoint of that arm's runs on the held-out layouts: the learning curve
+`<csv dir>/<task>_<NAME>.csv`.
 """
 
 from __future__ import annotations

@@ -21,7 +21,8 @@ model. Recovery data are not in the paper.
 Not settled: a DAgger round (the expert taking over from a trained policy's states, `condground record
 --takeover.*`) paid on the smaller model at 12000 steps (Task 1 87.7 % against 73.3 % with a prompted
 driver, Task 2 60.7 % against 51.3 % with a `standard` one), but not at 6000 steps or with reproduce's
-6000-step driver, and is unmeasured on this model.
+6000-step driver; on this model Task 2's round from its own 6000-step policy gave +3.0 points [-4.4, +10.3]
+(p = 0.48) at 6000 steps, 86 % and 80 % at its last checkpoints (docs/learning-curve/v2, twenty-first session).
 The quickstart, the learning-curve example, `reproduce --preset=cpu` and the benchmark
 all read it from here.
 """

@@ -97,9 +97,10 @@ TRAIN_SAMPLES_PER_CORE_S = {
     "cpu": {"standard": 16.0, "augmentation": 15.4, "augmentation_attention": 15.3, "full": 12.4},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
 }
-# Two torch threads trained the smaller CPU configuration (before 2026-12-04) at 60 samples/s against 41 on one
-# (quickstart, docs/measurements.md): a run on t threads goes t**0.55 times as fast.
-THREAD_SCALING = 0.55
+# The quickstart trained this model on both cores' two torch threads at 28.7 samples/s (twenty-first session, steps
+# 300-3000, docs/quickstart.md), against 16.0 for each of two one-thread runs side by side: a run on t threads goes
+# t**0.84 times as fast (the smaller model before 2026-12-04: 60 against 41, t**0.55).
+THREAD_SCALING = 0.84
 # Rollouts per minute per core (sweep workers scale linearly: x2.06 on 2): at ACT's own size, 96x128, six sweeps
 # of 50 Task 2 rollouts (a 60 % policy: shorter than a failing one's 300 steps, so an upper bound) in 14.8
 # minutes two at a time (nineteenth session; Task 1 at 75 %: 12.3 minutes);

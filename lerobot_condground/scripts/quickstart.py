@@ -1,4 +1,4 @@
-"""`condground quickstart`: the whole pipeline, trained from scratch, in about an hour on 2 CPU cores (not yet timed).
+"""`condground quickstart`: the whole pipeline, trained from scratch, in about 35 minutes on 2 CPU cores.
 
 1. records expert demonstrations of each task (LeRobotDatasets with masks, phases, prompts): Task 1's
    with the configuration's joint drift (recovery data) to learn from, a few of Task 2 to look at,
@@ -11,10 +11,9 @@
    representation diagnostics, the prompt-swap probe (variants with prompts) and an attention video,
    then writes the report.
 
-The configuration (since 2026-12-04 ACT's own model size, 6000 steps) succeeded on 75 % [70, 80] of 300
-held-out Task 1 rollouts on 200 demonstrations (two seeds, its last three checkpoints; docs/learning-curve/v2);
-half its budget on half the demonstrations, as here, is not yet measured. Rerunning reuses the datasets
-and the trained checkpoint.
+At these defaults (half the configuration's budget on half its demonstrations) it took 34.5 minutes on the 2-core
+EPYC, and its policy succeeded on 40 of 50 held-out Task 1 layouts (80 % [67, 89]; one run, docs/quickstart.md).
+Rerunning reuses the datasets and the trained checkpoint.
 """
 
 from __future__ import annotations
@@ -46,11 +45,11 @@ TRAIN_TASK = "PickPlaceFixedBin-v0"
 @dataclass
 class QuickstartTrainConfig:
     # Expert demonstrations of Task 1 recorded to learn from, with this joint drift (rad, record's
-    # --drift.std; 0: clean demonstrations). Half the configuration's: recording its 200 would take about
-    # 13 of the quickstart's minutes, and at half the step budget the gain is not measured.
+    # --drift.std; 0: clean demonstrations). Half the configuration's: the 100 took under 4 of the quickstart's
+    # minutes, and at half the step budget what 200 would gain is not measured.
     episodes: int = CPU_EPISODES // 2
     drift_std: float = CPU_DRIFT_STD
-    # Half the configuration's budget (about half an hour of training on 2 cores, not yet timed).
+    # Half the configuration's budget: 28 minutes of training on the 2-core EPYC's two threads.
     steps: int = CPU_STEPS // 2
     batch_size: int = CPU_BATCH_SIZE
     # `standard` shows the look-alike gap the paper starts from; `full` adds the prompts the probe needs.
