@@ -106,9 +106,11 @@ THREAD_SCALING = 0.84
 # minutes two at a time (nineteenth session; Task 1 at 75 %: 12.3 minutes);
 # the sweep benchmark at 240x320 (25.7 per minute for 100-step episodes; up to 300 here).
 ROLLOUTS_PER_CORE_MIN = {"cpu": 10.0, "paper": 8.6}
-# 100 clean episodes with labels and video took 395 s on 2 cores; counted as one core's 7.9 s per episode,
-# spread over at most 2 (one recording process; the software renderer's threads are what use the second).
-RECORD_CORE_S_PER_EPISODE = 7.9
+# One core's seconds per recorded episode (labels and video), spread over at most 2 (one recording process;
+# the software renderer's threads are what use the second). paper: 100 clean episodes at 240x320 in 395 s on
+# 2 cores; cpu: at 96x128 on the 2-core EPYC, 105 drift episodes in 199 s (the quickstart, twenty-first session),
+# and two recordings at once, 100 each, in 205 s (twenty-second).
+RECORD_CORE_S_PER_EPISODE = {"cpu": 3.8, "paper": 7.9}
 # 300 recorded episodes (24 153 frames at 96x128) merged in 5 minutes beside two trainings.
 MERGE_S_PER_EPISODE = 1.0
 DIAGNOSE_S_PER_PAIR = 5.8  # Task 2 standard, 20 pairs at 96x128 in 115 s on one core beside a training
@@ -394,7 +396,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
             steps * cfg.train.batch_size / (TRAIN_SAMPLES_PER_CORE_S[scale][variant] * share**THREAD_SCALING)
         )
 
-    record_s = RECORD_CORE_S_PER_EPISODE / min(cores, 2)
+    record_s = RECORD_CORE_S_PER_EPISODE[scale] / min(cores, 2)
     takeover = cfg.takeover.episodes
     for task, variant in pairs:
         if task not in recorded:
