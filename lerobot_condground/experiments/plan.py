@@ -108,8 +108,8 @@ THREAD_SCALING = 0.84
 ROLLOUTS_PER_CORE_MIN = {"cpu": 10.0, "paper": 8.6}
 # One core's seconds per recorded episode (labels and video), spread over at most 2 (one recording process;
 # the software renderer's threads are what use the second). paper: 100 clean episodes at 240x320 in 395 s on
-# 2 cores; cpu: at 96x128 on the 2-core EPYC, 105 drift episodes in 199 s (the quickstart, twenty-first session),
-# and two recordings at once, 100 each, in 205 s (twenty-second).
+# 2 cores; cpu: at 96x128 on the 2-core EPYC, 100 drift and 5 clean episodes in 199 s (the quickstart, twenty-first
+# session), and two drift recordings at once, 100 each, in 205 s (twenty-second).
 RECORD_CORE_S_PER_EPISODE = {"cpu": 3.8, "paper": 7.9}
 # 300 recorded episodes (24 153 frames at 96x128) merged in 5 minutes beside two trainings.
 MERGE_S_PER_EPISODE = 1.0
