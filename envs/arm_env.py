@@ -12,6 +12,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from lerobot_condground.core.codec import check_camera_codec, video_roundtrip
 from lerobot_condground.core.ur3e import MAX_JOINT_VELOCITY, check_servo, servo_setpoint
 
 from . import robot
@@ -48,13 +49,21 @@ class ArmEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
     def _setup(
-        self, obs_type: str, height: int, width: int, render_mode: str | None, fps: int, servo: str
+        self,
+        obs_type: str,
+        height: int,
+        width: int,
+        render_mode: str | None,
+        fps: int,
+        servo: str,
+        camera_codec: str = "none",
     ) -> None:
         """Checks and keeps the settings every task has; called first in a task's `__init__`."""
         check_resolution(height, width)
         check_fps(fps)
         check_servo(servo)
-        self.servo = servo
+        check_camera_codec(camera_codec, "camera_codec", height, width)
+        self.servo, self.camera_codec = servo, camera_codec
         if obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
         if render_mode not in (None, "rgb_array"):
@@ -89,10 +98,15 @@ class ArmEnv(gym.Env):
         obs: dict = {}
         self._last_frame = None
         if self.obs_type != "agent_pos":
-            self._last_frame = self._render_rgb("top")
-            obs["pixels"] = {"top": self._last_frame}
+            obs["pixels"] = {"top": self._render_rgb("top")}
             if self.wrist_camera:
                 obs["pixels"]["wrist"] = self._render_rgb("wrist")
+            if self.camera_codec == "video":
+                # Each frame as its own stream: a rollout's frames arrive one at a time.
+                obs["pixels"] = {
+                    name: video_roundtrip(frame[None], self.fps)[0] for name, frame in obs["pixels"].items()
+                }
+            self._last_frame = obs["pixels"]["top"]
         if self.obs_type != "pixels":
             obs["agent_pos"] = np.concatenate([self.joint_positions(), [self.gripper_closure()]])
         return obs

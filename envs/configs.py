@@ -31,6 +31,8 @@ class CondGroundEnvConfig(EnvConfig):
     cue (InstrumentRouting-v0): true sends the destination masks the `condground_rgb_cue` step draws,
         false sends empty ones (the cue hidden); unset sends none.
     instruction (InstrumentRouting-v0): the task strings' form, generic or explicit.
+    camera_codec: none (frames as rendered) or video (each frame through LeRobot's default video encoder and
+        back, as a recorded dataset stores it).
     servo: interpolated (each joint target reached over one control period at no more than the UR3e's
         rated joint speeds, as the arm's servoj stream and the twin do) or direct (the target set at once;
         the behaviour of runs made before this setting existed).
@@ -54,6 +56,9 @@ class CondGroundEnvConfig(EnvConfig):
     cue: bool | None = None
     instruction: str = "generic"
     servo: str = "interpolated"
+    # Camera frames as rendered (none), or through the video codec a LeRobotDataset stores them with (video):
+    # evaluation frames then look as the training frames did, small saturated objects blurred and desaturated.
+    camera_codec: str = "none"
     render_mode: str = "rgb_array"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(7,))}
@@ -76,6 +81,7 @@ class CondGroundEnvConfig(EnvConfig):
             raise ConfigError(str(err)) from None
 
     def _validate(self):
+        from lerobot_condground.core.codec import check_camera_codec
         from lerobot_condground.core.ur3e import check_servo
 
         from .arm_env import OBS_TYPES, check_fps, check_resolution
@@ -115,6 +121,9 @@ class CondGroundEnvConfig(EnvConfig):
             self.prompts = not routing
         check_resolution(self.observation_height, self.observation_width)
         check_servo(self.servo, "--env.servo")
+        check_camera_codec(
+            self.camera_codec, "--env.camera_codec", self.observation_height, self.observation_width
+        )
         check_fps(self.fps)
         if self.obs_type not in OBS_TYPES:
             raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
@@ -177,6 +186,7 @@ class CondGroundEnvConfig(EnvConfig):
                 "render_mode": self.render_mode,
                 "fps": self.fps,
                 "servo": self.servo,
+                "camera_codec": self.camera_codec,
                 "max_episode_steps": self.episode_length,
             }
         return {
@@ -190,5 +200,6 @@ class CondGroundEnvConfig(EnvConfig):
             "render_mode": self.render_mode,
             "fps": self.fps,
             "servo": self.servo,
+            "camera_codec": self.camera_codec,
             "max_episode_steps": self.episode_length,
         }

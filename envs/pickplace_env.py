@@ -54,10 +54,11 @@ class PickPlaceEnv(ArmEnv):
         render_mode: str | None = "rgb_array",
         fps: int = DEFAULT_FPS,
         servo: str = "interpolated",
+        camera_codec: str = "none",
     ):
         check_task(task)
         self.condition = ConditionSpec.parse(condition)
-        self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo)
+        self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo, camera_codec)
         check_fits(task, self.condition, counterbalanced)
         self.task = task
         self.counterbalanced = counterbalanced

@@ -177,10 +177,11 @@ class InstrumentRoutingEnv(ArmEnv):
         render_mode: str | None = "rgb_array",
         fps: int = 20,
         servo: str = "interpolated",
+        camera_codec: str = "none",
     ):
         self.task = ROUTING_TASK  # LeRobot's eval asks sub-envs for it
         self.episodes = parse_episodes(subgoal)
-        self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo)
+        self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo, camera_codec)
         if instruction not in INSTRUCTION_FORMS:
             raise ValueError(
                 f"Unknown instruction form {instruction!r}; allowed: {', '.join(INSTRUCTION_FORMS)}"

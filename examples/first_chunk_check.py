@@ -5,6 +5,8 @@ the first chunk against the cube's bearing from the robot's base: their correlat
 follows the cube: r near 1; one that ignores the image: r near 0, the same chunk in every layout).
 
     python examples/first_chunk_check.py --task=PickPlaceFixedBin-v0 --layouts=20 CHECKPOINT_DIR [...]
+
+--camera_codec=video shows the policy its frames through the dataset's video codec (`--env.camera_codec`).
 """
 
 import argparse
@@ -24,11 +26,16 @@ parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 parser.add_argument("checkpoints", nargs="+")
 parser.add_argument("--task", default="PickPlaceFixedBin-v0")
 parser.add_argument("--layouts", type=int, default=20)
+parser.add_argument("--camera_codec", default="none")
 args = parser.parse_args()
 torch.set_num_threads(1)
 height, width = CPU_FRAME_SIZE
 env_cfg = CondGroundEnvConfig(
-    task=args.task, condition="clean", observation_height=height, observation_width=width
+    task=args.task,
+    condition="clean",
+    observation_height=height,
+    observation_width=width,
+    camera_codec=args.camera_codec,
 )
 env = env_cfg.make_env()
 for checkpoint in args.checkpoints:
@@ -47,6 +54,6 @@ for checkpoint in args.checkpoints:
     r = np.corrcoef(bearings, turns)[0, 1]
     slope = np.polyfit(bearings, turns, 1)[0]
     print(
-        f"{checkpoint}: r = {r:.2f}, slope {slope:.2f} rad/rad, base joint at the chunk's end "
+        f"{checkpoint} (camera_codec={args.camera_codec}): r = {r:.2f}, slope {slope:.2f} rad/rad, base joint at the chunk's end "
         f"{np.min(turns):+.2f}..{np.max(turns):+.2f} rad for bearings {np.min(bearings):+.2f}..{np.max(bearings):+.2f}"
     )

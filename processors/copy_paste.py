@@ -12,6 +12,11 @@ Every pasted (shape, color) pair thus takes its shape or its color from the augm
 never an evaluation competitor. When the target of the paste's role is not visible in a sample,
 `same_color` and `same_shape` have nothing to copy and the paste falls back to `neither`.
 
+With `codec=video` the pasted frames go through the dataset's video codec and back, and the decoded pixels
+replace the paste and the two pixels around it: the frames a video dataset holds are decoded frames, whose small
+objects are blurred and desaturated by 4:2:0 chroma, and a crisp paste beside them is told apart by its
+sharpness alone, a cue the evaluation's raw renders turn around (the real target is then the crisp one).
+
 Pasted pixels get `SYNTHETIC_DISTRACTOR` in the segmentation, which is how M_d (labels >= 3) learns
 about them; alpha is hard (> 0.5), so the frame changes exactly where the label says so. Pastes never
 cover more than `max_occlusion` of the target object's or the target receptacle's visible pixels,
@@ -31,6 +36,7 @@ import torch.nn.functional as F
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.processor.pipeline import EnvTransition, ProcessorStep, ProcessorStepRegistry, TransitionKey
 
+from lerobot_condground.core.codec import CAMERA_CODECS, video_roundtrip
 from lerobot_condground.core.labels import SYNTHETIC_DISTRACTOR, TARGET_OBJECT, TARGET_RECEPTACLE
 from lerobot_condground.envs.assets import AUGMENTATION_COLORS, COLORS
 
@@ -53,7 +59,10 @@ CONFIG_FIELDS = (
     "seed",
     "sprite_scale",
     "placement_box",
+    "codec",
 )
+# Pixels around a paste that take the codec's output too: 4:2:0 chroma spreads an edge over two of them.
+CODEC_MARGIN = 2
 
 
 def _luminance(rgb: torch.Tensor) -> torch.Tensor:
@@ -120,9 +129,13 @@ class CopyPasteParams:
     # Where paste centers may fall, as fractions of the frame (top, left, bottom, right): by default the
     # table's part of the scene camera's view, so pastes rarely float over the background.
     placement_box: list[float] = field(default_factory=lambda: [0.25, 0.05, 0.95, 0.95])
+    # none: pastes as drawn; video: pasted frames through the dataset's video codec (see the module docstring).
+    codec: str = "none"
 
     def __post_init__(self):
         _check_key("camera_key", self.camera_key)
+        if self.codec not in CAMERA_CODECS:
+            raise ValueError(f"codec={self.codec!r} is not allowed; allowed: {', '.join(CAMERA_CODECS)}")
         for name, low, high in (("prob", 0.0, 1.0), ("max_occlusion", 0.0, 1.0)):
             _check_number(name, getattr(self, name), low, high)
         _check_integer("max_count", self.max_count, 1, MAX_COUNT)
@@ -353,7 +366,23 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
             out[on] = torch.where(mask.unsqueeze(1), rgb, out[on])
             seg[on] = seg[on].masked_fill(mask, SYNTHETIC_DISTRACTOR)
             covered[on] |= mask.unsqueeze(1) & targets[on]
+        if self.codec == "video":
+            out = self._codec_pastes(out, seg != segmentation)
         return out.to(images.dtype), seg
+
+    @staticmethod
+    def _codec_pastes(frames: torch.Tensor, pasted: torch.Tensor) -> torch.Tensor:
+        """The pasted frames' codec round trip, kept where a paste lies and CODEC_MARGIN pixels around it."""
+        rows = pasted.flatten(1).any(1).nonzero().squeeze(1)
+        if not len(rows):
+            return frames
+        side = 2 * CODEC_MARGIN + 1
+        region = F.max_pool2d(pasted[rows].unsqueeze(1).float(), side, stride=1, padding=CODEC_MARGIN) > 0
+        raw = (frames[rows].clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        decoded = torch.from_numpy(video_roundtrip(raw)).to(frames.device).permute(0, 3, 1, 2).float() / 255
+        out = frames.clone()
+        out[rows] = torch.where(region, decoded, frames[rows])
+        return out
 
     # ------------------------------------------------------------------ sprites
     def _sprite_bank(self) -> torch.Tensor:

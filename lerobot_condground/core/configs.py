@@ -114,6 +114,18 @@ class EvalEnvConfig:
     fps: int = 20
     # How joint targets reach the simulated servos: interpolated (as the UR3e) or direct (runs made before).
     servo: str = "interpolated"
+    # Camera frames as rendered (none) or through a recorded dataset's video codec (video): see core/codec.py.
+    camera_codec: str = "none"
+
+    def __post_init__(self):
+        from lerobot_condground.core.codec import CAMERA_CODECS
+
+        if (
+            self.camera_codec not in CAMERA_CODECS
+        ):  # sizes are checked with the checkpoint's, when the env is built
+            raise ValueError(
+                f"--env.camera_codec={self.camera_codec!r} is not allowed; allowed: {', '.join(CAMERA_CODECS)}"
+            )
 
 
 @dataclass

@@ -152,6 +152,11 @@ class RecordConfig:
                     f"{self.takeover.max_steps} are not allowed; allowed: 0 <= min_steps <= max_steps < "
                     f"--env.episode_length={self.env.episode_length}"
                 )
+        if self.env.camera_codec != "none":
+            raise ValueError(
+                f"--env.camera_codec={self.env.camera_codec!r} is not allowed when recording; allowed: none (the "
+                "dataset's own video encoding is --dataset.video; a second codec pass would blur every frame twice)"
+            )
         if self.dataset.num_episodes > MAX_EPISODES:
             raise ValueError(
                 f"--dataset.num_episodes={self.dataset.num_episodes} is not allowed; allowed: 1 to {MAX_EPISODES} "

@@ -36,6 +36,7 @@ class EnvSpec:
     fps: int = 20
     episode_length: int = 300
     servo: str = "interpolated"
+    camera_codec: str = "none"
     # InstrumentRouting-v0 only: the env kwargs of the same names (see envs/routing_env.py).
     subgoal: str = "procedure"
     cue: bool | None = None
@@ -61,6 +62,7 @@ class EnvSpec:
             fps=env.fps,
             episode_length=env.episode_length,
             servo=env.servo,
+            camera_codec=env.camera_codec,
         )
 
     def make(self):

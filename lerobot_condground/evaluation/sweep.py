@@ -148,6 +148,8 @@ def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[Loa
         "observation_height": cfg.env.observation_height,
         "observation_width": cfg.env.observation_width,
     }
+    if cfg.env.camera_codec != "none":  # absent from sweeps made before the setting: they stay resumable
+        grid["camera_codec"] = cfg.env.camera_codec
     return {
         "kind": "sweep",
         "grid": grid,

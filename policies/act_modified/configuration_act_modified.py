@@ -103,6 +103,7 @@ class ACTModifiedConfig(ACTConfig):
     copy_paste_max_occlusion: float = CopyPasteParams.max_occlusion
     copy_paste_seed: int = CopyPasteParams.seed
     copy_paste_categories: list[str] = field(default_factory=lambda: list(CATEGORIES))
+    copy_paste_codec: str = CopyPasteParams.codec
 
     # Normalization layers of the ResNet backbone: frozen_batchnorm (LeRobot's ACT, made for ImageNet
     # weights), batchnorm or groupnorm (32 groups). Trained from scratch (pretrained_backbone_weights=None),
@@ -225,6 +226,7 @@ class ACTModifiedConfig(ACTConfig):
             max_occlusion=self.copy_paste_max_occlusion,
             seed=self.copy_paste_seed,
             categories=self.copy_paste_categories,
+            codec=self.copy_paste_codec,
         )
 
     def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
