@@ -18,7 +18,8 @@ objects are blurred and desaturated by 4:2:0 chroma, and a crisp paste beside th
 sharpness alone, a cue the evaluation's raw renders turn around (the real target is then the crisp one).
 
 Pasted pixels get `SYNTHETIC_DISTRACTOR` in the segmentation, which is how M_d (labels >= 3) learns
-about them; alpha is hard (> 0.5), so the frame changes exactly where the label says so. Pastes never
+about them; alpha is hard (> 0.5), so the frame changes exactly where the label says so (with `codec=video`, also
+within two pixels of it). Pastes never
 cover more than `max_occlusion` of the target object's or the target receptacle's visible pixels,
 all pastes of a sample together. As a training-only step it acts only when the transition carries an
 action and gradients are enabled (LeRobot 0.6.1 has no train/eval flag for processors); `augment`
