@@ -11,7 +11,8 @@ OUT=outputs/probe_1000/$NAME
 CK=$OUT/checkpoints/001000/pretrained_model
 mkdir -p outputs/probe_1000
 if [ ! -f $CK/model.safetensors ]; then
-  rm -rf $OUT
+  # A folder of this name without its checkpoint is another (or an unfinished) run: never deleted here.
+  [ -e $OUT ] && { echo "$OUT exists without checkpoints/001000; move it or choose another NAME" >&2; exit 1; }
   condground train --policy.type=act_modified --policy.device=cpu --policy.push_to_hub=false \
     $(python -m lerobot_condground.core.training) --dataset.repo_id=local/$T --dataset.root=$DATA \
     --steps=6000 --save_freq=1000 --log_freq=100 --num_workers=0 --wandb.enable=false --seed=$SEED \

@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.processor.pipeline import EnvTransition, ProcessorStep, ProcessorStepRegistry, TransitionKey
 
-from lerobot_condground.core.codec import CAMERA_CODECS, video_roundtrip
+from lerobot_condground.core.codec import check_camera_codec, video_roundtrip
 from lerobot_condground.core.labels import SYNTHETIC_DISTRACTOR, TARGET_OBJECT, TARGET_RECEPTACLE
 from lerobot_condground.envs.assets import AUGMENTATION_COLORS, COLORS
 
@@ -135,8 +135,7 @@ class CopyPasteParams:
 
     def __post_init__(self):
         _check_key("camera_key", self.camera_key)
-        if self.codec not in CAMERA_CODECS:
-            raise ValueError(f"codec={self.codec!r} is not allowed; allowed: {', '.join(CAMERA_CODECS)}")
+        check_camera_codec(self.codec, "codec")
         for name, low, high in (("prob", 0.0, 1.0), ("max_occlusion", 0.0, 1.0)):
             _check_number(name, getattr(self, name), low, high)
         _check_integer("max_count", self.max_count, 1, MAX_COUNT)

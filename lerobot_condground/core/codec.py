@@ -21,10 +21,11 @@ import numpy as np
 CAMERA_CODECS = ("none", "video")
 
 
-def check_camera_codec(value, flag: str, height: int, width: int) -> None:
+def check_camera_codec(value, flag: str, height: int | None = None, width: int | None = None) -> None:
+    """The codec's name, and with a frame size that 4:2:0 chroma can encode it (sizes unknown yet: name only)."""
     if value not in CAMERA_CODECS:
         raise ValueError(f"{flag}={value!r} is not allowed; allowed: {', '.join(CAMERA_CODECS)}")
-    if value != "none" and (height % 2 or width % 2):
+    if value != "none" and height is not None and (height % 2 or width % 2):
         raise ValueError(f"{flag}={value!r} needs even frame sizes (4:2:0 chroma); got {height}x{width}")
 
 

@@ -118,14 +118,10 @@ class EvalEnvConfig:
     camera_codec: str = "none"
 
     def __post_init__(self):
-        from lerobot_condground.core.codec import CAMERA_CODECS
+        from lerobot_condground.core.codec import check_camera_codec
 
-        if (
-            self.camera_codec not in CAMERA_CODECS
-        ):  # sizes are checked with the checkpoint's, when the env is built
-            raise ValueError(
-                f"--env.camera_codec={self.camera_codec!r} is not allowed; allowed: {', '.join(CAMERA_CODECS)}"
-            )
+        # Sizes are checked with the checkpoint's when the env is built.
+        check_camera_codec(self.camera_codec, "--env.camera_codec")
 
 
 @dataclass
