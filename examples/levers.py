@@ -1,6 +1,7 @@
 """A training lever measured against the baseline as issue 27 asks: both trained side by side at the same
 step budget, several training seeds each, the last checkpoints of every run pooled on the same held-out
-clean layouts, paired layout by layout, with a 95 % interval and McNemar's exact p.
+layouts, paired layout by layout, with a 95 % interval and McNemar's exact p, under each of --conditions
+(clean by default; `--conditions=clean,full_mixed` scores look-alikes too, one row per condition).
 
     python examples/levers.py --task=PickPlaceFixedBin-v0 --data=outputs/levers/data/PickPlaceFixedBin-v0 \\
         --lever='cosine=--policy.scheduler_name=cosine' --seeds=0,1 --steps=12000 --every=2000 \\
@@ -18,7 +19,7 @@ checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes
 after outputs/ is gone), and prints each arm's pooled rate; without --lever the baseline is measured alone.
 With --published_baseline the baseline is not trained or evaluated: its pooled rollouts are read from
 `<csv stem>_rollouts.csv` (an earlier session's runs of that name, on a recording made again from the same
-seeds: recording is deterministic).
+seeds: recording is deterministic; tables without a `condition` column are clean rollouts).
 With --heldout, `condground fit` of each run's last checkpoint on its first training demonstrations and on
 the held-out recording (`<csv stem>_fit.csv`, per segment). With
 --train_layouts=N, each run's last checkpoint also runs N rollouts on the recording's own layouts (its
@@ -139,7 +140,7 @@ def evaluate_all(args, arms: dict[str, list[str]]) -> None:
         for seed in args.seeds:
             for step in pooled_steps(args, arm):
                 out = args.out / "eval" / f"{run_dir(args, arm, seed).name}" / f"{step:06d}"
-                if not (out / "results.parquet").exists():
+                if not swept(out / "results.parquet", args.conditions):
                     todo.append((checkpoint(run_dir(args, arm, seed), step), out))
     # The last checkpoints again on the recording's own layouts (its seeds 0, 1, ...: fit or generalization?).
     for arm in arms if args.train_layouts else ():
@@ -147,17 +148,24 @@ def evaluate_all(args, arms: dict[str, list[str]]) -> None:
             out = args.out / "eval_train" / run_dir(args, arm, seed).name / f"{args.budget[arm][0]:06d}"
             if not (out / "results.parquet").exists():
                 todo.append((checkpoint(run_dir(args, arm, seed), args.budget[arm][0]), out))
-    sweep_all(args, todo)
+    sweep_all(args, todo, args.conditions)
 
 
-def sweep_all(args, todo: list[tuple[Path, Path]]) -> None:
-    """One sweep per (checkpoint, output folder), resumable one by one, --jobs at once on one worker each."""
+def swept(results: Path, conditions: list[str]) -> bool:
+    """Whether a sweep's table holds every condition asked for (a sweep resumes, so a new condition is added)."""
+    return results.exists() and set(conditions) <= set(read_table(results)["condition"])
+
+
+def sweep_all(args, todo: list[tuple[Path, Path]], conditions: list[str]) -> None:
+    """One sweep per (checkpoint, output folder), resumable one by one, --jobs at once on one worker each; the
+    held-out layouts under `conditions`, the recording's own ones (eval_train) clean."""
     commands = []
     for ckpt, out in todo:
         own_layouts = out.parts[-3] == "eval_train"
         commands.append([
             "condground", "sweep", f"--policy.paths={ckpt}", f"--env.task={args.task}",
-            f"--env.servo={args.servo}", "--sweep.conditions=clean", "--eval.seeds=1",
+            f"--env.servo={args.servo}", f"--sweep.conditions={'clean' if own_layouts else ','.join(conditions)}",
+            "--eval.seeds=1",
             f"--eval.n_episodes={args.train_layouts if own_layouts else args.episodes}",
             f"--eval.seed_offset={0 if own_layouts else args.seed_offset}", "--workers=1",
             f"--output_dir={out}", "--progress=false",
@@ -208,13 +216,15 @@ def curves(args, arms: dict[str, list[str]]) -> None:
         (checkpoint(run_dir(args, arm, seed), step), args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}")
         for arm in named for seed in args.seeds for step in steps(arm)
     ]  # fmt: skip
-    sweep_all(args, [(ckpt, out) for ckpt, out in todo if not (out / "results.parquet").exists()])
+    sweep_all(
+        args, [(ckpt, out) for ckpt, out in todo if not swept(out / "results.parquet", ["clean"])], ["clean"]
+    )
     for arm, name in named.items():
         rows = []
         for seed in args.seeds:
             log = run_dir(args, arm, seed).resolve().with_suffix(".log")  # a linked run's log is beside it
             for step in steps(arm):
-                frame = outcomes(args, arm, seed, step)
+                frame = outcomes(args, arm, seed, step, "clean")
                 r = rate(int(frame["success"].sum()), len(frame))
                 rows.append(
                     {"minutes": elapsed_minutes(log, step, args.budget[arm][0]), "steps": step,
@@ -245,13 +255,16 @@ def merge_csv(
     path: Path, rows: list[dict], task: str, names, column: str = "lever", fmt: str = "%.4f", baseline=None
 ):
     """Writes `rows` to `path` in place of its earlier rows of these names on this task (and against this
-    baseline arm, when given: one lever may be paired against two baselines); returns the table."""
+    baseline arm, when given: one lever may be paired against two baselines; and under these conditions, when
+    the rows have them: a run scored under fewer conditions keeps the others' rows); returns the table."""
     table = pd.DataFrame(rows)
     if path.exists():
         old = pd.read_csv(path)
         replaced = old["task"].eq(task) & old[column].isin(list(names))
         if baseline is not None:
             replaced &= old["baseline_arm"].eq(baseline)
+        if "condition" in table and "condition" in old:
+            replaced &= old["condition"].fillna("clean").isin(set(table["condition"]))
         table = pd.concat([old[~replaced], table], ignore_index=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(path, index=False, float_format=fmt)
@@ -263,23 +276,27 @@ def published(args, arm: str) -> bool:
     return args.published_baseline and arm == args.baseline
 
 
-def outcomes(args, arm: str, seed: int, step: int) -> pd.DataFrame:
+def outcomes(args, arm: str, seed: int, step: int, condition: str) -> pd.DataFrame:
     if published(args, arm):
         path = args.csv.with_name(f"{args.csv.stem}_rollouts.csv")
         table = pd.read_csv(path)
+        if "condition" not in table:  # the tables of issue 27 scored clean scenes only
+            table = table.assign(condition="clean")
         frame = table[
             table["lever"].eq(arm)
             & table["task"].eq(args.task)
             & table["seed"].eq(seed)
             & table["step"].eq(step)
+            & table["condition"].eq(condition)
         ]
-        if frame.empty:
-            raise SystemExit(
-                f"--published_baseline: {path} has no rollouts of {arm} on {args.task}, seed {seed}, step {step}"
-            )
+        where = f"--published_baseline: {path}"
     else:
-        frame = read_table(
-            args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}" / "results.parquet"
+        results = args.out / "eval" / run_dir(args, arm, seed).name / f"{step:06d}" / "results.parquet"
+        table = read_table(results)
+        frame, where = table[table["condition"].eq(condition)], str(results)
+    if frame.empty:
+        raise SystemExit(
+            f"{where} has no rollouts of {arm} on {args.task}, seed {seed}, step {step}, {condition}"
         )
     return frame.sort_values("layout_seed").reset_index(drop=True)
 
@@ -315,37 +332,44 @@ def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str
 def analyse(args, arms: dict[str, list[str]]) -> None:
     per_checkpoint, pooled, per_rollout = [], {}, []
     for arm in arms:
-        columns = []
-        for seed in args.seeds:
-            for step in pooled_steps(args, arm):
-                frame = outcomes(args, arm, seed, step)
-                columns.append(frame[["layout_seed", "success"]])
-                if published(args, arm):
-                    continue  # its rows are already in the tables
-                per_rollout.append(columns[-1].assign(lever=arm, task=args.task, seed=seed, step=step))
-                r = rate(int(frame["success"].sum()), len(frame))
-                per_checkpoint.append(
-                    {"lever": arm, "task": args.task, "seed": seed, "step": step, "success": r["rate"],
-                     "n": r["n"], "ci_low": r["low"], "ci_high": r["high"]}
-                )  # fmt: skip
-        pooled[arm] = columns
+        for condition in args.conditions:
+            columns = []
+            for seed in args.seeds:
+                for step in pooled_steps(args, arm):
+                    frame = outcomes(args, arm, seed, step, condition)
+                    columns.append(frame[["layout_seed", "success"]])
+                    if published(args, arm):
+                        continue  # its rows are already in the tables
+                    per_rollout.append(
+                        columns[-1].assign(
+                            lever=arm, task=args.task, condition=condition, seed=seed, step=step
+                        )
+                    )
+                    r = rate(int(frame["success"].sum()), len(frame))
+                    per_checkpoint.append(
+                        {"lever": arm, "task": args.task, "condition": condition, "seed": seed, "step": step,
+                         "success": r["rate"], "n": r["n"], "ci_low": r["low"], "ci_high": r["high"]}
+                    )  # fmt: skip
+            pooled[arm, condition] = columns
     rows = []
     for arm in arms:
         if arm == args.baseline:
             continue
-        for ours, theirs in zip(pooled[args.baseline], pooled[arm], strict=True):
-            if not ours["layout_seed"].equals(theirs["layout_seed"]):
-                raise SystemExit(f"{arm}: the baseline and the lever were evaluated on different layouts")
-        a = pd.concat([c["success"] for c in pooled[args.baseline]]).to_numpy()
-        b = pd.concat([c["success"] for c in pooled[arm]]).to_numpy()
-        d = paired_difference(a, b)
-        rows.append(
-            {"lever": arm, "task": args.task, "baseline_arm": args.baseline, "seeds": len(args.seeds), "n": d["n"],
-             "baseline": d["rate_a"],
-             "treated": d["rate_b"], "diff": d["diff"], "diff_low": d["low"], "diff_high": d["high"],
-             "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.budget[arm][0],
-             "checkpoints": " ".join(map(str, pooled_steps(args, arm)))}
-        )  # fmt: skip
+        for condition in args.conditions:
+            base, treated = pooled[args.baseline, condition], pooled[arm, condition]
+            for ours, theirs in zip(base, treated, strict=True):
+                if not ours["layout_seed"].equals(theirs["layout_seed"]):
+                    raise SystemExit(f"{arm}: the baseline and the lever were evaluated on different layouts")
+            a = pd.concat([c["success"] for c in base]).to_numpy()
+            b = pd.concat([c["success"] for c in treated]).to_numpy()
+            d = paired_difference(a, b)
+            rows.append(
+                {"lever": arm, "task": args.task, "condition": condition, "baseline_arm": args.baseline,
+                 "seeds": len(args.seeds), "n": d["n"], "baseline": d["rate_a"],
+                 "treated": d["rate_b"], "diff": d["diff"], "diff_low": d["low"], "diff_high": d["high"],
+                 "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.budget[arm][0],
+                 "checkpoints": " ".join(map(str, pooled_steps(args, arm)))}
+            )  # fmt: skip
     if rows:
         merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
@@ -353,19 +377,22 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, own)
     # Every pooled rollout, so a later session can re-pair these arms after outputs/ is gone.
     rollouts = pd.concat(per_rollout, ignore_index=True)[
-        ["lever", "task", "seed", "step", "layout_seed", "success"]
+        ["lever", "task", "condition", "seed", "step", "layout_seed", "success"]
     ]
     merge_csv(
         args.csv.with_name(f"{args.csv.stem}_rollouts.csv"), rollouts.astype({"success": int}).to_dict("records"),
         args.task, own,
     )  # fmt: skip
+    clean = mine["condition"].fillna("clean").eq("clean") if "condition" in mine else True
     plot_success(
-        mine[mine["task"].eq(args.task)], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),
+        mine[mine["task"].eq(args.task) & clean], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),
         "step", "training steps", args.task, by="lever",
     )  # fmt: skip
-    for arm, columns in pooled.items():
+    for (arm, condition), columns in pooled.items():
         r = rate(sum(int(c["success"].sum()) for c in columns), sum(len(c) for c in columns))
-        print(f"{arm}: {r['rate']:.1%} [{r['low']:.1%}, {r['high']:.1%}] of {r['n']} pooled rollouts")
+        print(
+            f"{arm}, {condition}: {r['rate']:.1%} [{r['low']:.1%}, {r['high']:.1%}] of {r['n']} pooled rollouts"
+        )
     if rows:
         print(pd.DataFrame(rows).drop(columns=["flags"]).to_string(index=False))
     if args.train_layouts:
@@ -487,6 +514,11 @@ def main() -> None:
         "the same recording) instead of training and evaluating it again",
     )
     parser.add_argument("--seeds", default="0,1")
+    parser.add_argument(
+        "--conditions",
+        default="clean",
+        help="held-out conditions scored and compared (e.g. clean,full_mixed)",
+    )
     parser.add_argument("--steps", type=int, default=CPU_STEPS, help="the configuration's budget by default")
     parser.add_argument("--every", type=int, default=2000)
     parser.add_argument("--pool", type=int, default=3, help="last checkpoints of each run pooled")
@@ -513,6 +545,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     args.seeds = [int(s) for s in args.seeds.split(",")]
+    args.conditions = args.conditions.split(",")
     args.flags = shlex.split(args.flags)
     arms = parse_levers(args.lever, args.baseline)
     args.budget = budgets(args, arms)

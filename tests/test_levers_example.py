@@ -69,7 +69,9 @@ def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_pat
             success = rng.random(len(layouts)) < 0.8
             lever[(seed, step)] = success
             rows = pd.DataFrame({c: [None] * len(layouts) for c in TABLE_COLUMNS})
-            rows = rows.assign(layout_seed=list(layouts)[::-1], success=success[::-1])  # unsorted on disk
+            rows = rows.assign(
+                condition="clean", layout_seed=list(layouts)[::-1], success=success[::-1]
+            )  # unsorted
             write_table(
                 rows, out / "eval" / f"{task}_standard_big_s{seed}" / f"{step:06d}" / "results.parquet"
             )
@@ -85,10 +87,76 @@ def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_pat
     assert row["treated"] == pytest.approx(np.mean([s.mean() for s in lever.values()]), abs=1e-4)
     rollouts = pd.read_csv(docs / "levers_rollouts.csv")
     kept = rollouts[rollouts["lever"].eq("base")].reset_index(drop=True)
-    pd.testing.assert_frame_equal(kept, published)
-    assert rollouts["lever"].eq("big").sum() == 120
+    pd.testing.assert_frame_equal(kept[published.columns], published)  # a `condition` column is added beside
+    lever = rollouts[rollouts["lever"].eq("big")]
+    assert len(lever) == 120 and lever["condition"].eq("clean").all() and kept["condition"].isna().all()
 
     wrong = [c.replace("--baseline=base", "--baseline=other") for c in command]
     refused = subprocess.run(wrong, capture_output=True, text=True)
     assert refused.returncode != 0
     assert "has no rollouts of other" in refused.stderr
+
+
+def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_path):
+    """--conditions=clean,full_mixed: one comparison row per condition, each pairing the lever's rollouts of that
+    condition against the baseline's of the same condition and layouts; every rollout keeps its condition; a
+    condition the baseline was not scored under is refused by name."""
+    task, layouts, rng = "PickPlaceRandomBin-v0", list(range(1_000_000, 1_000_010)), np.random.default_rng(1)
+    docs, out = tmp_path / "docs", tmp_path / "out"
+    docs.mkdir()
+    chance = {"clean": (0.9, 0.8), "full_mixed": (0.2, 0.7)}  # baseline, lever
+    published = pd.DataFrame(
+        [{"lever": "base", "task": task, "condition": c, "seed": seed, "step": step, "layout_seed": layout,
+          "success": int(rng.random() < chance[c][0])}
+         for c in chance for seed in (0, 1) for step in (5, 6) for layout in layouts]
+    )  # fmt: skip
+    published.to_csv(docs / "levers_rollouts.csv", index=False)
+    lever = {c: [] for c in chance}
+    for seed in (0, 1):
+        for step in (5, 6):
+            parts = []
+            for condition, (_, p) in chance.items():
+                success = rng.random(len(layouts)) < p
+                lever[condition].append(success)
+                parts.append(pd.DataFrame({c: [None] * len(layouts) for c in TABLE_COLUMNS}).assign(
+                    condition=condition, layout_seed=layouts[::-1], success=success[::-1]))  # fmt: skip
+            write_table(
+                pd.concat(parts, ignore_index=True),
+                out / "eval" / f"{task}_standard_aug_s{seed}" / f"{step:06d}" / "results.parquet",
+            )
+    command = [
+        sys.executable, str(ROOT / "examples" / "levers.py"), f"--task={task}", "--data=unused", "--baseline=base",
+        "--published_baseline", "--steps=6", "--every=1", "--pool=2", "--seeds=0,1", f"--out={out}",
+        "--lever=aug=--policy.variant=augmentation", f"--csv={docs / 'levers.csv'}", "--stage=analyse",
+        "--conditions=clean,full_mixed",
+    ]  # fmt: skip
+    subprocess.run(command, check=True, capture_output=True, text=True)
+    rows = pd.read_csv(docs / "levers.csv").set_index("condition")
+    assert list(rows.index) == ["clean", "full_mixed"] and (rows["n"] == 40).all()
+    for condition in chance:
+        base = published[published["condition"].eq(condition)]["success"].mean()
+        assert rows.loc[condition, "baseline"] == pytest.approx(base, abs=1e-4)
+        assert rows.loc[condition, "treated"] == pytest.approx(np.mean(lever[condition]), abs=1e-4)
+    rollouts = pd.read_csv(docs / "levers_rollouts.csv")
+    assert rollouts[rollouts["lever"].eq("aug")].groupby("condition").size().to_dict() == {
+        "clean": 40,
+        "full_mixed": 40,
+    }
+
+    refused = subprocess.run(
+        [c.replace("clean,full_mixed", "clean,object_color_3") for c in command],
+        capture_output=True,
+        text=True,
+    )
+    assert refused.returncode != 0
+    assert "has no rollouts of base" in refused.stderr and "object_color_3" in refused.stderr
+
+    # Scored again under one condition: that condition's rows are replaced, the other's are kept.
+    subprocess.run(
+        [c.replace("clean,full_mixed", "full_mixed") for c in command], check=True, capture_output=True
+    )
+    again = pd.read_csv(docs / "levers.csv")
+    assert sorted(again["condition"]) == ["clean", "full_mixed"]
+    assert pd.read_csv(docs / "levers_rollouts.csv").groupby(["lever", "condition"]).size()[
+        "aug"
+    ].to_dict() == {"clean": 40, "full_mixed": 40}

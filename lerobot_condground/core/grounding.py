@@ -16,7 +16,7 @@ def pooled_mask(mask: Tensor, grid: tuple[int, int]) -> Tensor:
 
 
 def overlaps(attention: Tensor, relevant: Tensor, distractors: Tensor) -> tuple[Tensor, Tensor]:
-    """(<A, M_phi>, <A, M_d>) per sample for attention (B, h, w) summing to 1 over the grid and pixel
+    """(<A, M_phi>, <A, M_d>) per sample for attention (B, h, w) summing to at most 1 over the grid and pixel
     masks (B, H, W) of the same camera."""
     grid = tuple(attention.shape[-2:])
     return (

@@ -42,6 +42,10 @@ SCHEDULERS = ("constant", "cosine")
 BACKBONE_LAYERS = ("layer4", "layer3")
 COMPONENTS = ("use_copy_paste", "use_attention_loss", "use_prompts", "use_phase_predictor")
 BACKBONE_NORMS = ("frozen_batchnorm", "batchnorm", "groupnorm")
+# What the supervised head's A is normalized over: the camera's tokens (A sums to 1 on the grid, whatever share
+# of the head's attention the camera gets) or the whole memory (A is the head's own attention on the grid, so
+# 1 - <A, M_phi> is small only when the head looks at the image, and at the relevant entity there).
+ATTENTION_NORMALIZATIONS = ("camera", "memory")
 # Blocks per stage of the basic-block ResNets a narrower backbone can copy.
 NARROW_RESNET_LAYERS = {"resnet18": (2, 2, 2, 2), "resnet34": (3, 4, 6, 3)}
 VARIANTS: dict[str, dict[str, bool]] = {
@@ -88,12 +92,17 @@ class ACTModifiedConfig(ACTConfig):
     attention_camera: str | None = None
     attention_pos_weight: float = 1.0  # lambda_+
     attention_neg_weight: float = 1.0  # lambda_-
+    attention_normalization: str = "camera"  # one of ATTENTION_NORMALIZATIONS
 
     # Phase predictor (L_phi, cross-entropy). In training the prompt is chosen by the phase label
     # with this probability and by the predictor otherwise (scheduled sampling when < 1).
     phase_loss_weight: float = 1.0  # lambda_phi
     phase_teacher_forcing: float = 1.0
     phase_head_dim: int = 256
+    # The phase head reads the backbone's pooled features; with this set it reads them without training them
+    # (stop-gradient), so L_phi shapes only the head. Joined with copy-paste, the trained-through head stalled
+    # the first action chunk at 1000 steps (docs/learning-curve/v3).
+    phase_head_detach: bool = False
 
     # Copy-paste distractor augmentation (a train-only preprocessor step; saved with the checkpoint,
     # so changing these for a loaded checkpoint has no effect on its saved step).
@@ -144,6 +153,11 @@ class ACTModifiedConfig(ACTConfig):
         for name in ("attention_pos_weight", "attention_neg_weight", "phase_loss_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
+        if self.attention_normalization not in ATTENTION_NORMALIZATIONS:
+            raise ValueError(
+                f"attention_normalization={self.attention_normalization!r} is not allowed; allowed: "
+                f"{', '.join(ATTENTION_NORMALIZATIONS)}"
+            )
         if not 0.0 <= self.phase_teacher_forcing <= 1.0:
             raise ValueError(f"phase_teacher_forcing={self.phase_teacher_forcing} must be in [0, 1]")
         if self.use_prompts and not self.use_phase_predictor:

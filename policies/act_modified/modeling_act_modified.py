@@ -176,7 +176,8 @@ class ACTModified(ACT):
         """ACT's forward with the prompt token appended to the memory. Returns (actions, (mu, log_sigma_x2),
         aux) with aux["phase_logits"] (B, 2), aux["phase"] (B,) the phase whose prompt was fed, and with
         `with_attention` aux["attention"] (B, h, w): the supervised head's attention over the camera's
-        token grid, averaged over action queries and normalized to sum 1."""
+        token grid, averaged over action queries, normalized to sum 1 on the grid (`attention_normalization`
+        camera) or left as the head's share of the whole memory (memory)."""
         cfg = self.config
         images = batch[OBS_IMAGES]
         batch_size = images[0].shape[0]
@@ -201,6 +202,8 @@ class ACTModified(ACT):
         aux: dict[str, Tensor] = {}
         if cfg.use_phase_predictor:
             pooled = [fm.mean(dim=(2, 3)) for fm in feature_maps]
+            if cfg.phase_head_detach:
+                pooled = [p.detach() for p in pooled]
             if cfg.robot_state_feature:
                 pooled.append(batch[OBS_STATE])
             aux["phase_logits"] = self.phase_head(torch.cat(pooled, dim=1))
@@ -238,7 +241,10 @@ class ACTModified(ACT):
             log_attention = cross_attention.head_log_attention(cfg.attention_head)[
                 :, :, start : start + h * w
             ]
-            aux["attention"] = grid_attention(log_attention).view(batch_size, h, w)
+            if cfg.attention_normalization == "memory":
+                aux["attention"] = log_attention.exp().mean(1).view(batch_size, h, w)
+            else:
+                aux["attention"] = grid_attention(log_attention).view(batch_size, h, w)
         return actions, (mu, log_sigma_x2), aux
 
     def _latent(self, batch: dict[str, Tensor], batch_size: int):
@@ -476,5 +482,5 @@ class ACTModifiedPolicy(ACTPolicy):
 
 
 def attention_overlaps(attention: Tensor, segmentation: Tensor, phase: Tensor) -> tuple[Tensor, Tensor]:
-    """(<A, M_phi>, <A, M_d>) per sample for attention (B, h, w) summing to 1 and a label map (B, H, W)."""
+    """(<A, M_phi>, <A, M_d>) per sample for attention (B, h, w) summing to at most 1 and a label map (B, H, W)."""
     return overlaps(attention, *phase_masks(segmentation, phase))

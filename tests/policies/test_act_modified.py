@@ -335,6 +335,48 @@ def test_attention_loss_moves_attention_to_the_relevant_mask():
     assert distractors_after < distractors_before, (distractors_before, distractors_after)
 
 
+def test_memory_normalization_supervises_the_heads_own_attention_on_the_camera():
+    """With attention_normalization=memory, A is the head's attention on the grid as a share of the whole memory
+    (latent, state, camera tokens): the same map as the camera normalization's, scaled by the camera's share."""
+    batch = make_batch()
+    maps = {}
+    for normalization in ("camera", "memory"):
+        policy = make_policy(variant="augmentation_attention", attention_normalization=normalization)
+        policy.eval()
+        with torch.no_grad():
+            maps[normalization] = policy.model(policy._images_listed(batch), with_attention=True)[2][
+                "attention"
+            ]
+    share = maps["memory"].sum(dim=(1, 2))
+    assert (share > 0).all() and (share < 1 - 1e-3).all(), share  # two 1D tokens hold part of the mass
+    torch.testing.assert_close(maps["memory"] / share.view(-1, 1, 1), maps["camera"])
+    on_relevant = {
+        k: attention_overlaps(v, batch[OBS_SEGMENTATION], batch[OBS_PHASE])[0] for k, v in maps.items()
+    }
+    torch.testing.assert_close(on_relevant["memory"], on_relevant["camera"] * share)
+    with pytest.raises(
+        ValueError, match="attention_normalization='grid' is not allowed; allowed: camera, memory"
+    ):
+        make_policy(attention_normalization="grid")
+
+
+@pytest.mark.parametrize("detach", [False, True])
+def test_phase_head_detach_keeps_the_phase_loss_out_of_the_backbone(detach):
+    """phase_head_detach=true: L_phi trains the phase head only; the backbone it reads gets none of its gradient
+    (without it, L_phi reaches the backbone)."""
+    policy = make_policy(variant="augmentation", use_phase_predictor=True, phase_head_detach=detach)
+    policy.train()
+    batch = make_batch()
+    aux = policy.model(policy._images_listed(batch))[2]
+    torch.nn.functional.cross_entropy(aux["phase_logits"], batch[OBS_PHASE]).backward()
+    backbone = sum(
+        p.grad.abs().sum().item() for p in policy.model.backbone.parameters() if p.grad is not None
+    )
+    head = sum(p.grad.abs().sum().item() for p in policy.model.phase_head.parameters())
+    assert head > 0
+    assert (backbone == 0) if detach else (backbone > 0), backbone
+
+
 def test_empty_masks_give_a_finite_loss():
     policy = make_policy(variant="augmentation_attention")
     batch = make_batch()
