@@ -17,11 +17,11 @@ each split by phase (0: acquire, 1: place) and, in phase 0, for the frames where
 """
 
 import argparse
-import csv
 from pathlib import Path
 
 import mujoco
 import numpy as np
+import pandas as pd
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
@@ -131,10 +131,7 @@ def main():
         rows.append(row)
         tqdm.write(", ".join(f"{k} {v}" for k, v in row.items()))
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    with args.output.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    pd.DataFrame(rows).to_csv(args.output, index=False, float_format="%.4f")
 
 
 if __name__ == "__main__":

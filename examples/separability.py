@@ -24,11 +24,11 @@ on what a from-scratch backbone learns to use).
 """
 
 import argparse
-import csv
 import functools
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 from sklearn.linear_model import LogisticRegression
 from sklearn.model_selection import StratifiedKFold, cross_val_score
@@ -218,10 +218,7 @@ def main():
         frames = {m: backbone_tokens(checkpoint, args.task, f"object_{m}_1", args.layouts) for m in matches}
         add("96x128", checkpoint, "backbone_token", *competitors(frames, token))
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    with args.output.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    pd.DataFrame(rows).to_csv(args.output, index=False, float_format="%.4f")
 
 
 if __name__ == "__main__":
