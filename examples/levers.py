@@ -45,7 +45,7 @@ import pandas as pd
 
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags
 from lerobot_condground.evaluation.results import read_table
-from lerobot_condground.evaluation.statistics import paired_difference, rate
+from lerobot_condground.evaluation.statistics import clustered_difference, holm, paired_difference, rate
 
 
 def parse_levers(specs: list[str], baseline: str) -> dict[str, list[str]]:
@@ -337,7 +337,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
             for seed in args.seeds:
                 for step in pooled_steps(args, arm):
                     frame = outcomes(args, arm, seed, step, condition)
-                    columns.append(frame[["layout_seed", "success"]])
+                    columns.append(frame[["layout_seed", "success"]].assign(run=seed))
                     if published(args, arm):
                         continue  # its rows are already in the tables
                     per_rollout.append(
@@ -363,15 +363,23 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
             a = pd.concat([c["success"] for c in base]).to_numpy()
             b = pd.concat([c["success"] for c in treated]).to_numpy()
             d = paired_difference(a, b)
+            # The layout as the pairing unit and the training run as the replicate (issue 57).
+            c = clustered_difference(
+                *(pd.concat(x).rename(columns={"layout_seed": "layout"}) for x in (base, treated))
+            )
             rows.append(
                 {"lever": arm, "task": args.task, "condition": condition, "baseline_arm": args.baseline,
                  "seeds": len(args.seeds), "n": d["n"], "baseline": d["rate_a"],
                  "treated": d["rate_b"], "diff": d["diff"], "diff_low": d["low"], "diff_high": d["high"],
-                 "p": d["p_value"], "flags": shlex.join(arms[arm]), "steps": args.budget[arm][0],
+                 "p": d["p_value"], "cluster_low": c["low"], "cluster_high": c["high"], "cluster_p": c["p_value"],
+                 "seed_effects": " ".join(f"{e:+.4f}" for e in c["seed_effects"]),
+                 "flags": shlex.join(arms[arm]), "steps": args.budget[arm][0],
                  "checkpoints": " ".join(map(str, pooled_steps(args, arm)))}
             )  # fmt: skip
     if rows:
-        merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
+        table = merge_csv(args.csv, rows, args.task, [row["lever"] for row in rows], baseline=args.baseline)
+        # Holm over the whole table: every comparison ever published in it is one family.
+        table.assign(holm_p=holm(table["cluster_p"])).to_csv(args.csv, index=False, float_format="%.4f")
     checkpoints_csv = args.csv.with_name(f"{args.csv.stem}_checkpoints.csv")
     own = [arm for arm in arms if not published(args, arm)]
     mine = merge_csv(checkpoints_csv, per_checkpoint, args.task, own)

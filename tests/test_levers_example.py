@@ -137,6 +137,20 @@ def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_pa
         base = published[published["condition"].eq(condition)]["success"].mean()
         assert rows.loc[condition, "baseline"] == pytest.approx(base, abs=1e-4)
         assert rows.loc[condition, "treated"] == pytest.approx(np.mean(lever[condition]), abs=1e-4)
+        seeds = [np.mean(lever[condition][2 * s : 2 * s + 2]) for s in (0, 1)]
+        effects = [float(e) for e in rows.loc[condition, "seed_effects"].split()]
+        base_runs = published[published["condition"].eq(condition)].groupby("seed")["success"].mean()
+        assert effects == pytest.approx([seeds[s] - base_runs[s] for s in (0, 1)], abs=1e-4)
+        assert (
+            rows.loc[condition, "cluster_low"]
+            < rows.loc[condition, "diff"]
+            < rows.loc[condition, "cluster_high"]
+        )
+    # Holm over the table's two comparisons: the smaller p doubled, the larger kept (or raised to it).
+    small, large = sorted(rows["cluster_p"])
+    assert sorted(rows["holm_p"]) == pytest.approx(
+        [min(2 * small, 1), max(min(2 * small, 1), large)], abs=1e-4
+    )
     rollouts = pd.read_csv(docs / "levers_rollouts.csv")
     assert rollouts[rollouts["lever"].eq("aug")].groupby("condition").size().to_dict() == {
         "clean": 40,

@@ -23,6 +23,11 @@ Not settled: a DAgger round (the expert taking over from a trained policy's stat
 driver, Task 2 60.7 % against 51.3 % with a `standard` one), but not at 6000 steps or with reproduce's
 6000-step driver; on this model Task 2's round from its own 6000-step policy gave +3.0 points [-4.4, +10.3]
 (p = 0.48) at 6000 steps, 86 % and 80 % at its last checkpoints (docs/learning-curve/v2, twenty-first session).
+The p-values above are the lever protocol's Newcombe/McNemar figures, which took 300 pooled rollouts as
+independent pairs. Read again with the layout as the pairing unit and the training runs' spread added
+(`evaluation.statistics.clustered_difference`, Holm over the lever table; issue 57), none of these levers
+is resolved with two runs an arm: the configuration rests on effects that point the same way in both
+seeds (all but ACT's own size on Task 1, kept for Task 2), not on significance (docs/learning-curve/v2/README.md).
 The quickstart, the learning-curve example, `reproduce --preset=cpu` and the benchmark
 all read it from here.
 """

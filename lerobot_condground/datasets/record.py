@@ -162,7 +162,13 @@ class RecordConfig:
                 f"--dataset.num_episodes={self.dataset.num_episodes} is not allowed; allowed: 1 to {MAX_EPISODES} "
                 "(at 96x128 about 0.5 MB and 4 s an episode on 2 cores: 50 GB and 5 days at the limit)"
             )
-        if self.seed < HELD_OUT_SEED_OFFSET < self.seed + self.dataset.num_episodes:
+        if self.seed >= HELD_OUT_SEED_OFFSET:
+            raise ValueError(
+                f"--seed={self.seed} is not allowed: from seed {HELD_OUT_SEED_OFFSET} on `condground sweep` draws "
+                f"its held-out layouts, which no training recording may hold; allowed: 0 to "
+                f"{HELD_OUT_SEED_OFFSET - self.dataset.num_episodes}"
+            )
+        if self.seed + self.dataset.num_episodes > HELD_OUT_SEED_OFFSET:
             raise ValueError(
                 f"--seed={self.seed} with --dataset.num_episodes={self.dataset.num_episodes} is not allowed: the "
                 f"recording's layouts would reach seed {HELD_OUT_SEED_OFFSET}, where `condground sweep` draws its "
@@ -532,6 +538,13 @@ def record(cfg: RecordConfig, driver=None) -> dict:
     try:
         while have < cfg.dataset.num_episodes:
             seed = state["next_seed"]
+            if seed >= HELD_OUT_SEED_OFFSET:
+                # Failed episodes were retried with later seeds until the next one is a held-out layout.
+                raise ValueError(
+                    f"the next episode's seed {seed} is a held-out layout of `condground sweep` (retries of "
+                    f"{len(state['failed_seeds'])} failed episodes pushed the seeds up); what was recorded is kept: "
+                    f"record the rest into another --dataset.root from a lower --seed and merge the two"
+                )
             state["next_seed"] += 1
             frames: list[dict] = []
             drift = (

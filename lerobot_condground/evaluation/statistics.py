@@ -14,7 +14,9 @@ from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 from statsmodels.stats.contingency_tables import mcnemar
+from statsmodels.stats.multitest import multipletests
 from statsmodels.stats.proportion import proportion_confint
 
 from lerobot_condground.core.routing import ROUTING_SUBGOALS, SUBGOALS
@@ -221,6 +223,85 @@ def paired_difference(a, b, alpha: float = ALPHA) -> dict:
         "high": min(diff + d_high, 1.0),
         "p_value": p_value,
     }
+
+
+def layout_means(rollouts: pd.DataFrame) -> pd.DataFrame:
+    """Success of each training run on each layout, its checkpoints averaged: runs × layouts.
+    `rollouts` has the columns `run`, `layout` and `success` (one row per rollout)."""
+    missing = {"run", "layout", "success"} - set(rollouts.columns)
+    if missing:
+        raise ValueError(f"rollouts need the columns run, layout, success; missing {sorted(missing)}")
+    table = rollouts.pivot_table(index="run", columns="layout", values="success", aggfunc="mean")
+    holes = table.isna()
+    if holes.to_numpy().any():
+        run, layout = holes.stack()[lambda h: h].index[0]
+        raise ValueError(f"run {run} has no rollout on layout {layout}; every run must cover every layout")
+    return table.astype(float)
+
+
+def clustered_difference(a: pd.DataFrame, b: pd.DataFrame, alpha: float = ALPHA) -> dict:
+    """rate(b) − rate(a) for two arms of several training runs each, scored on the same layouts.
+
+    The layout is the unit of pairing and the training run the unit of replication: the pooled rollouts
+    of one layout are not independent (the same layout, seen by every checkpoint of every run), and a
+    claim about an arm is a claim about a new training run, so the interval adds the spread of the arms'
+    runs to the spread over layouts: var = var(d_l)/L + s²(1/R_a + 1/R_b), where d_l is the layout's
+    difference of run-averaged success and s² the pooled variance of the arms' run rates (on common
+    layouts, so layout difficulty cancels from it). The interval and p use Student's t with Welch–Satterthwaite
+    degrees of freedom: with two runs an arm the training variance rests on two runs each, and the
+    interval says so by its width. Both arms' runs must cover the same layouts. The simulation that
+    chose this method over bootstraps and Newcombe/McNemar: `lerobot_condground/evaluation/coverage.py`.
+
+    Returns layouts, runs_a, runs_b, rate_a, rate_b, diff, low, high, p_value, df, and seed_effects
+    (run i of b less run i of a, runs in sorted order, as many as the smaller arm has)."""
+    ma, mb = layout_means(a), layout_means(b)
+    if set(ma.columns) != set(mb.columns):
+        only = sorted(set(ma.columns) ^ set(mb.columns))
+        raise ValueError(f"the arms were scored on different layouts (in one arm only: {only[:5]})")
+    d = mb[ma.columns].mean(axis=0).to_numpy() - ma.mean(axis=0).to_numpy()
+    layout_var = float(d.var(ddof=1)) if d.size > 1 else float("nan")
+    return run_layout_interval(
+        ma.mean(axis=1).to_numpy(), mb.mean(axis=1).to_numpy(), layout_var, d.size, alpha
+    )
+
+
+def run_layout_interval(run_a, run_b, layout_var: float, layouts: int, alpha: float = ALPHA) -> dict:
+    """`clustered_difference` from its parts: each run's rate over the common layouts (arm a, arm b, runs
+    in order) and the variance over layouts of the layout-wise difference (or a bound on it, where only
+    checkpoint rates survive)."""
+    run_a, run_b = np.asarray(run_a, dtype=float), np.asarray(run_b, dtype=float)
+    ra, rb = run_a.size, run_b.size
+    diff = float(run_b.mean() - run_a.mean())
+    out = {
+        "layouts": layouts, "runs_a": ra, "runs_b": rb, "rate_a": float(run_a.mean()), "rate_b": float(run_b.mean()),
+        "diff": diff, "seed_effects": (run_b[: min(ra, rb)] - run_a[: min(ra, rb)]).tolist(),
+    }  # fmt: skip
+    if min(ra, rb) < 2 or layouts < 2:
+        # One run cannot show how much training runs differ: no interval is honest then.
+        return {**out, **dict.fromkeys(("low", "high", "p_value", "df"), float("nan"))}
+    # One run variance for both arms, pooled: two runs an arm leave each arm's own variance 1 degree of
+    # freedom, and the arms of a lever share the recipe that makes runs differ (seeded init and batches).
+    pooled = ((ra - 1) * run_a.var(ddof=1) + (rb - 1) * run_b.var(ddof=1)) / (ra + rb - 2)
+    parts = np.array([layout_var / layouts, pooled * (1 / ra + 1 / rb)])
+    dofs = np.array([layouts - 1, ra + rb - 2])
+    var = parts.sum()
+    if var == 0:
+        # Every run of each arm agrees on every layout: the difference is what it is.
+        return {**out, "low": diff, "high": diff, "p_value": float(diff == 0), "df": float("inf")}
+    df = float(var**2 / np.sum(parts**2 / dofs))
+    half = stats.t.ppf(1 - alpha / 2, df) * math.sqrt(var)
+    p_value = float(2 * stats.t.sf(abs(diff) / math.sqrt(var), df))
+    return {**out, "low": max(diff - half, -1.0), "high": min(diff + half, 1.0), "p_value": p_value, "df": df}
+
+
+def holm(p_values) -> np.ndarray:
+    """Holm's step-down adjustment of a family of p-values (statsmodels); NaN stays NaN."""
+    p = np.asarray(p_values, dtype=float)
+    out = np.full(p.shape, np.nan)
+    has = ~np.isnan(p)
+    if has.any():
+        out[has] = multipletests(p[has], method="holm")[1]
+    return out
 
 
 def _pairable_column(metric: str) -> str:

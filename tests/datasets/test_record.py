@@ -299,6 +299,8 @@ def test_bad_record_flags_fail_before_any_work(tmp_path, capsys):
             "--takeover.policy_path=ckpt --takeover.max_steps=300",
             "--takeover.max_steps=300 are not allowed; allowed: 0 <= min_steps <= max_steps < --env.episode_length=300",
         ),
+        ("--seed=1000000", "--seed=1000000 is not allowed: from seed 1000000 on `condground sweep` draws"),
+        ("--seed=999999 --dataset.num_episodes=2", "allowed: at most 1 episodes from this seed"),
         (
             "--takeover.policy_path=ckpt --env.task=InstrumentRouting-v0",
             "--takeover.policy_path is not allowed with --env.task=InstrumentRouting-v0",
@@ -308,6 +310,20 @@ def test_bad_record_flags_fail_before_any_work(tmp_path, capsys):
         err = capsys.readouterr().err
         assert fragment in err, err[-2000:]
         assert not root.exists()
+
+
+def test_retries_never_reach_the_held_out_layouts(tmp_path, capsys):
+    """A failed episode is retried with the next seed: from 999999 that would be the sweep's first held-out
+    layout, so the recording stops there with one line instead of training on it."""
+    from lerobot_condground.cli import main
+
+    root = tmp_path / "ds"
+    flags = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/edge", f"--dataset.root={root}",
+             "--progress=false", "--dataset.num_episodes=1", "--seed=999999", "--env.observation_height=64",
+             "--env.observation_width=80", "--env.episode_length=3"]  # fmt: skip
+    assert main(["record", *flags]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "seed 1000000 is a held-out layout" in err and "1 failed episodes" in err, err
 
 
 def test_every_frame_reaches_the_video(recorded_dataset):
