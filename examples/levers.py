@@ -1,7 +1,9 @@
 """A training lever measured against the baseline as issue 27 asks: both trained side by side at the same
 step budget, several training seeds each, the last checkpoints of every run pooled on the same held-out
-layouts, paired layout by layout, with a 95 % interval and McNemar's exact p, under each of --conditions
-(clean by default; `--conditions=clean,full_mixed` scores look-alikes too, one row per condition).
+layouts, paired layout by layout, with a 95 % interval and McNemar's exact p, and beside them the run-aware
+interval (`statistics.clustered_difference`: the layout pairs, the training run replicates) and Holm's p over
+the whole table, under each of --conditions (clean by default; `--conditions=clean,full_mixed` scores
+look-alikes too, one row per condition).
 
     python examples/levers.py --task=PickPlaceFixedBin-v0 --data=outputs/levers/data/PickPlaceFixedBin-v0 \\
         --lever='cosine=--policy.scheduler_name=cosine' --seeds=0,1 --steps=12000 --every=2000 \\
@@ -16,7 +18,8 @@ seed, on the same layout. A lever whose flags set `--steps` and `--save_freq` is
 checkpoints are pooled (`--lever='long=--steps=24000 --save_freq=2000'`). Writes one row per lever to --csv
 (replacing an earlier row of the same lever and task), every checkpoint's rate beside it
 (`<csv stem>_checkpoints.csv`) and every pooled rollout's outcome (`<csv stem>_rollouts.csv`, to re-pair
-after outputs/ is gone), and prints each arm's pooled rate; without --lever the baseline is measured alone.
+after outputs/ is gone) and each arm's stage funnel per condition (`<csv stem>_funnel.csv`), and prints
+each arm's pooled rate; without --lever the baseline is measured alone.
 With --published_baseline the baseline is not trained or evaluated: its pooled rollouts are read from
 `<csv stem>_rollouts.csv` (an earlier session's runs of that name, on a recording made again from the same
 seeds: recording is deterministic; tables without a `condition` column are clean rollouts).
@@ -45,7 +48,14 @@ import pandas as pd
 
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags
 from lerobot_condground.evaluation.results import read_table
-from lerobot_condground.evaluation.statistics import clustered_difference, holm, paired_difference, rate
+from lerobot_condground.evaluation.statistics import (
+    METRICS,
+    cell_metrics,
+    clustered_difference,
+    holm,
+    paired_difference,
+    rate,
+)
 
 
 def parse_levers(specs: list[str], baseline: str) -> dict[str, list[str]]:
@@ -330,7 +340,7 @@ def plot_success(rows: pd.DataFrame, path: Path, x: str, xlabel: str, title: str
 
 
 def analyse(args, arms: dict[str, list[str]]) -> None:
-    per_checkpoint, pooled, per_rollout = [], {}, []
+    per_checkpoint, pooled, per_rollout, swept_rows = [], {}, [], []
     for arm in arms:
         for condition in args.conditions:
             columns = []
@@ -340,6 +350,7 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
                     columns.append(frame[["layout_seed", "success"]].assign(run=seed))
                     if published(args, arm):
                         continue  # its rows are already in the tables
+                    swept_rows.append(frame.assign(lever=arm, task=args.task))
                     per_rollout.append(
                         columns[-1].assign(
                             lever=arm, task=args.task, condition=condition, seed=seed, step=step
@@ -391,6 +402,18 @@ def analyse(args, arms: dict[str, list[str]]) -> None:
         args.csv.with_name(f"{args.csv.stem}_rollouts.csv"), rollouts.astype({"success": int}).to_dict("records"),
         args.task, own,
     )  # fmt: skip
+    # Where each arm fails, per condition: the stage funnel and the competitor's share of the pooled rollouts.
+    funnel = cell_metrics(pd.concat(swept_rows, ignore_index=True), by=("lever", "task", "condition"))
+    columns = [
+        "lever",
+        "task",
+        "condition",
+        "episodes",
+        *(f"{m}{s}" for m in METRICS for s in ("", "_k", "_n")),
+    ]
+    merge_csv(
+        args.csv.with_name(f"{args.csv.stem}_funnel.csv"), funnel[columns].to_dict("records"), args.task, own
+    )
     clean = mine["condition"].fillna("clean").eq("clean") if "condition" in mine else True
     plot_success(
         mine[mine["task"].eq(args.task) & clean], checkpoints_csv.with_name(f"{args.csv.stem}_{args.task}.png"),

@@ -23,6 +23,14 @@ def levers():
     return module
 
 
+def flags(success, seed: int) -> dict:
+    """Stage and selection columns of a sweep's rows: a success went through every stage; a failure grasped
+    the look-alike."""
+    success = np.asarray(success, bool)
+    return {"pick": success, "lift": success, "place": success, "selected_competitor_object": ~success,
+            "placed_in_competitor_receptacle": np.zeros_like(success), "training_seed": seed}  # fmt: skip
+
+
 def bar(done: int, total: int, seconds: int) -> str:
     """One tqdm line as `condground train` writes it."""
     return f"Training:  {100 * done // total}%| | {done}/{total} [{seconds // 60:02d}:{seconds % 60:02d}<00:10,  1.00step/s]"
@@ -70,7 +78,10 @@ def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_pat
             lever[(seed, step)] = success
             rows = pd.DataFrame({c: [None] * len(layouts) for c in TABLE_COLUMNS})
             rows = rows.assign(
-                condition="clean", layout_seed=list(layouts)[::-1], success=success[::-1]
+                condition="clean",
+                layout_seed=list(layouts)[::-1],
+                success=success[::-1],
+                **flags(success[::-1], seed),
             )  # unsorted
             write_table(
                 rows, out / "eval" / f"{task}_standard_big_s{seed}" / f"{step:06d}" / "results.parquet"
@@ -119,7 +130,8 @@ def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_pa
                 success = rng.random(len(layouts)) < p
                 lever[condition].append(success)
                 parts.append(pd.DataFrame({c: [None] * len(layouts) for c in TABLE_COLUMNS}).assign(
-                    condition=condition, layout_seed=layouts[::-1], success=success[::-1]))  # fmt: skip
+                    condition=condition, layout_seed=layouts[::-1], success=success[::-1],
+                    **flags(success[::-1], seed)))  # fmt: skip
             write_table(
                 pd.concat(parts, ignore_index=True),
                 out / "eval" / f"{task}_standard_aug_s{seed}" / f"{step:06d}" / "results.parquet",
@@ -151,6 +163,11 @@ def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_pa
     assert sorted(rows["holm_p"]) == pytest.approx(
         [min(2 * small, 1), max(min(2 * small, 1), large)], abs=1e-4
     )
+    funnel = pd.read_csv(docs / "levers_funnel.csv").set_index("condition")
+    assert list(funnel["lever"]) == ["aug", "aug"] and (funnel["episodes"] == 40).all()
+    for condition in chance:
+        assert funnel.loc[condition, "p_pick"] == pytest.approx(np.mean(lever[condition]), abs=1e-4)
+        assert funnel.loc[condition, "p_grasped_competitor_k"] == 40 - np.sum(lever[condition])
     rollouts = pd.read_csv(docs / "levers_rollouts.csv")
     assert rollouts[rollouts["lever"].eq("aug")].groupby("condition").size().to_dict() == {
         "clean": 40,
