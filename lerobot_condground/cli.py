@@ -18,6 +18,8 @@ from pathlib import Path
 
 import draccus
 
+from lerobot_condground.core.scheduling import normal_priority
+
 # name -> (module under lerobot_condground.scripts, one line of help)
 COMMANDS = {
     "record": ("record", "Record scripted-expert demonstrations into a LeRobotDataset (v3)."),
@@ -194,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # A command started by a thread an AV1 encoder left at real-time priority would starve its machine.
+    normal_priority()
     import lerobot_condground.registration  # noqa: F401  (our env, policy and processor names, as in LeRobot's scripts)
 
     script = importlib.import_module(f"lerobot_condground.scripts.{COMMANDS[command][0]}")

@@ -17,6 +17,8 @@ import os
 
 import numpy as np
 
+from lerobot_condground.core.scheduling import kept_priority
+
 # none: frames as rendered (or pasted); video: through LeRobot's default RGB video encoder and back.
 CAMERA_CODECS = ("none", "video")
 
@@ -49,7 +51,7 @@ def video_roundtrip(frames: np.ndarray, fps: int = 20) -> np.ndarray:
     os.environ.setdefault("SVT_LOG", "1")
     encoder = rgb_encoder_defaults()
     buffer = io.BytesIO()
-    with av.open(buffer, "w", format="mp4") as container:
+    with kept_priority(), av.open(buffer, "w", format="mp4") as container:
         stream = container.add_stream(
             encoder.vcodec, fps, options=encoder.get_codec_options(1, as_strings=True)
         )

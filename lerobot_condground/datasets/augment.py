@@ -20,6 +20,7 @@ from lerobot_condground.core.configs import DatasetOutputConfig, DatasetRefConfi
 from lerobot_condground.core.files import partial_beside
 from lerobot_condground.core.labels import OBS_SEGMENTATION, SYNTHETIC_DISTRACTOR, decode_labels, encode_png
 from lerobot_condground.core.provenance import AUGMENT_FILE, RECORD_FILE
+from lerobot_condground.core.scheduling import kept_priority
 from lerobot_condground.processors.copy_paste import CopyPasteDistractorStep, CopyPasteParams
 
 
@@ -151,11 +152,13 @@ def augment_dataset(cfg: AugmentConfig) -> dict:
                     )
                 frames += len(items)
                 bar.update(len(items))
-            target.save_episode()
+            with kept_priority():  # the encoder would leave this thread at real-time priority
+                target.save_episode()
         finished = True
     finally:
         bar.close()
-        target.finalize()
+        with kept_priority():
+            target.finalize()
         if not finished:
             shutil.rmtree(partial, ignore_errors=True)
     if (src_root / RECORD_FILE).is_file():

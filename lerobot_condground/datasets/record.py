@@ -47,6 +47,7 @@ from lerobot_condground.core.labels import (
     encode_png,
 )
 from lerobot_condground.core.provenance import RECORD_FILE
+from lerobot_condground.core.scheduling import kept_priority
 from lerobot_condground.core.ur3e import MOTOR_NAMES, SERVO_BEFORE_THE_SETTING
 from lerobot_condground.envs.configs import CondGroundEnvConfig
 
@@ -598,16 +599,19 @@ def record(cfg: RecordConfig, driver=None) -> dict:
                 dataset.add_frame(frame)
             # LeRobot re-enables `datasets` bars after every dataset load (SuppressProgressBars).
             datasets.disable_progress_bars()
-            dataset.save_episode()
+            with kept_priority():  # the encoder would leave this thread at real-time priority
+                dataset.save_episode()
             have += 1
             bar.update(1)
             if have % cfg.dataset.checkpoint_every == 0 and have < cfg.dataset.num_episodes:
-                dataset.finalize()
+                with kept_priority():
+                    dataset.finalize()
                 dataset = LeRobotDataset.resume(cfg.dataset.repo_id, root=root, streaming_encoding=False)
     finally:
         bar.close()
         # Whatever happened, what was saved is closed and readable.
-        dataset.finalize()
+        with kept_priority():
+            dataset.finalize()
         _write_provenance(root, cfg, state, policy_hash)
         env.close()
     if cfg.dataset.push_to_hub:
