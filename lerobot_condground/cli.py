@@ -55,6 +55,10 @@ COMMANDS = {
         "pi05_bench",
         "Training-step time and peak memory of the full-size pi05_grounded (regularizer, checkpointing), on a GPU.",
     ),
+    "compare": (
+        "compare",
+        "Two training recipes side by side (N seeds, late checkpoints pooled, same held-out layouts), run-aware stats.",
+    ),
     "sweep": (
         "sweep",
         "Evaluate checkpoints over conditions x seeds x rollouts (resumable, parallel) -> results.parquet.",

@@ -241,6 +241,13 @@ def test_quickstart_trains_and_evaluates_act_modified(tmp_path):
             "unrecognized arguments: --bogus=1; `condground bench --help` lists the flags",
         ),
         (["quickstart", "--train.episodes=0"], "--train.episodes=0 is not allowed"),
+        (
+            ["compare", "--eval.conditions=clean,full_mix"],
+            "--eval.conditions='clean,full_mix' is not allowed",
+        ),
+        (["compare", "--treated.flags=--steps=1", "--treated.runs=a,b"], "--treated has flags and runs"),
+        (["compare", "--baseline.name=std", "--treated.name=std"], "--treated.name are both 'std'"),
+        (["compare", "--stage=plot"], "--stage='plot' is not allowed"),
         (["quickstart", "--train.drift_std=0.5"], "--train.drift_std=0.5 is not allowed; allowed: 0 (clean)"),
         (["quickstart", "--output_dir="], "--output_dir is empty"),
         (["quickstart", "--diagnosis.workers=0"], "--diagnosis.workers=0 is not allowed"),
@@ -274,6 +281,7 @@ def test_every_command_reports_bad_input_in_one_line(args, named, tmp_path, monk
                 "failures",
                 "quickstart",
                 "reproduce",
+                "compare",
             )
         ),
         ["record", "--dataset.root=taken"],

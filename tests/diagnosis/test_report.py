@@ -385,8 +385,8 @@ def test_missing_inputs_leave_a_note(inputs, tmp_path):
     text = html_path.read_text()
     assert 'id="probe"' in text and 'id="table-1"' not in text and 'id="table-2"' not in text
     assert (
-        text.count('class="note"') == 9
-    )  # at a glance, table I, stages, 2 difference sections, subgoals, table II, t-SNE, attention
+        text.count('class="note"') == 10
+    )  # at a glance, table I, stages, 2 difference sections, subgoals, table II, t-SNE, attention, comparisons
 
 
 def test_parse_report_args_accepts_repeated_and_comma_separated_dirs():
@@ -595,6 +595,41 @@ def test_input_json_cannot_reach_outside_its_folder_or_inject_html(inputs, tmp_p
         text = path.read_text()
         assert "<script>alert" not in text and "<img src=x" not in text, path
         assert "&lt;script&gt;alert(2)&lt;/script&gt;" in text, path
+
+
+def comparison(folder: Path, **changes) -> Path:
+    """A comparison folder as `condground compare` writes it (its JSON and figure), with `changes` to the JSON."""
+    folder.mkdir(parents=True)
+    (folder / "compare.png").write_bytes(png_bytes())
+    row = {"lever": "aug", "baseline_arm": "std", "task": "PickPlaceFixedBin-v0", "condition": "full_mixed",
+           "seeds": 2, "n": 300, "baseline": 0.02, "treated": 0.3, "diff": 0.28, "diff_low": 0.2, "diff_high": 0.35,
+           "p": 1e-9, "cluster_low": 0.05, "cluster_high": 0.51, "cluster_p": 0.03, "seed_effects": "+0.2 +0.36",
+           "differences": ""}  # fmt: skip
+    data = {
+        "kind": "compare",
+        "summary": [row],
+        "figure": "compare.png",
+        "command": ["condground", "compare"],
+    }
+    (folder / "compare.json").write_text(json.dumps({**data, **changes}))
+    return folder
+
+
+def test_a_comparison_is_a_section_and_its_json_stays_in_its_folder(tmp_path):
+    html_path, md_path = build_report(
+        ReportConfig(input_dir=[str(comparison(tmp_path / "cmp"))], output=str(tmp_path / "r.html"))
+    )
+    text = md_path.read_text()
+    assert "| aug vs std | T1 PickPlaceFixedBin-v0 | full_mixed | 2 | 300 | 2.0% | 30.0% |" in text
+    assert "+28.0 pp [+5.0, +51.0], p=0.03" in text and "+28.0 pp [+20.0, +35.0], p=1e-09" in text
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(png_bytes())
+    bad = comparison(tmp_path / "out", figure="../secret.png")
+    with pytest.raises(ValueError, match="figure '../secret.png' listed in its JSON is outside"):
+        build_report(ReportConfig(input_dir=[str(bad)], output=str(tmp_path / "x.html")))
+    bad = comparison(tmp_path / "text", summary=[{"diff": "0.5; <script>"}])
+    with pytest.raises(ValueError, match="summary has diff='0.5; <script>'; allowed: a number"):
+        build_report(ReportConfig(input_dir=[str(bad)], output=str(tmp_path / "y.html")))
 
 
 def test_a_tampered_manifest_deletes_nothing(inputs, tmp_path):

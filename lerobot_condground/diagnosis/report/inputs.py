@@ -1,5 +1,5 @@
-"""Reading and checking the output directories of `condground sweep`, `subgoals`, `diagnose`, `probe` and
-`attention`.
+"""Reading and checking the output directories of `condground sweep`, `subgoals`, `diagnose`, `probe`,
+`attention` and `compare` (its comparison folder).
 
 Each directory is recognised by the JSON its command wrote; any inconsistency is one ValueError naming the
 directory, raised before anything is written.
@@ -30,7 +30,11 @@ KIND_FILES = {
     "diagnostics.json": "diagnose",
     "probe.json": "probe",
     "attention.json": "attention",
+    "compare.json": "compare",
 }
+# The numbers of a comparison's summary row the report shows: anything else in the JSON is not read.
+COMPARISON_NUMBERS = ("seeds", "n", "baseline", "treated", "diff", "diff_low", "diff_high", "p", "cluster_low",
+                      "cluster_high", "cluster_p")  # fmt: skip
 COUNTERBALANCED = " (counterbalanced)"
 # One trial of `condground subgoals`: the same weights on the same layout under the same condition and scorer.
 TRIAL_KEY = ("checkpoint_hash", "condition", "subgoal", "layout_seed", "scored_by")
@@ -45,6 +49,7 @@ class Inputs:
     diagnostics: list[tuple[Path, dict]]
     probes: list[tuple[Path, dict]]
     attention: list[tuple[Path, dict]]
+    comparisons: list[tuple[Path, dict]]
 
 
 def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
@@ -139,14 +144,27 @@ def _check_files(folder: Path, rels, what: str) -> None:
                 raise ValueError(f"{folder}: {what} {rel!r} is not a PNG image")
 
 
+def _check_comparison(folder: Path, data: dict) -> None:
+    """A comparison's summary rows must be what `condground compare` writes: numbers where numbers belong."""
+    rows = data.get("summary")
+    if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
+        raise ValueError(f"{folder}: compare.json has no summary rows; the comparison did not finish")
+    for row in rows:
+        for key in COMPARISON_NUMBERS:
+            value = row.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
+                raise ValueError(f"{folder}: compare.json's summary has {key}={value!r}; allowed: a number")
+    _check_files(folder, [data.get("figure") or "compare.png"], "figure")
+
+
 def load_inputs(dirs: list[str]) -> Inputs:
     """Reads and checks every input directory; any inconsistency is one ValueError naming the directory."""
     if not dirs:
         raise ValueError(
-            "No input directories: give --input_dir=DIR (repeatable) with sweep, subgoals, diagnose, probe "
-            "or attention outputs"
+            "No input directories: give --input_dir=DIR (repeatable) with sweep, subgoals, diagnose, probe, "
+            "attention or compare outputs"
         )
-    frames, subgoals, sources, diagnostics, probes, attention = [], [], [], [], [], []
+    frames, subgoals, sources, diagnostics, probes, attention, comparisons = [], [], [], [], [], [], []
     seen: set[Path] = set()
     for raw in dirs:
         folder = Path(raw)
@@ -159,7 +177,7 @@ def load_inputs(dirs: list[str]) -> Inputs:
         if not found:
             raise ValueError(
                 f"{folder}: none of {', '.join(KIND_FILES)} found; give the --output_dir of condground "
-                "sweep, subgoals, diagnose, probe or attention"
+                "sweep, subgoals, diagnose, probe or attention, or a comparison folder of condground compare"
             )
         for name, kind in found:
             data = read_json_object(folder / name, "Input")
@@ -175,6 +193,9 @@ def load_inputs(dirs: list[str]) -> Inputs:
                 diagnostics.append((folder, data))
             elif kind == "probe":
                 probes.append((folder, data))
+            elif kind == "compare":
+                _check_comparison(folder, data)
+                comparisons.append((folder, data))
             else:
                 _check_files(folder, data.get("stills") or [], "still")
                 attention.append((folder, data))
@@ -184,7 +205,7 @@ def load_inputs(dirs: list[str]) -> Inputs:
     trials = pd.concat(subgoals, ignore_index=True) if subgoals else pd.DataFrame()
     if len(subgoals) > 1:
         _refuse_overlap(trials, TRIAL_KEY, "subgoals")
-    return Inputs(results, trials, sources, diagnostics, probes, attention)
+    return Inputs(results, trials, sources, diagnostics, probes, attention, comparisons)
 
 
 def _refuse_overlap(results: pd.DataFrame, keys: tuple[str, ...], kind: str) -> None:

@@ -707,6 +707,55 @@ def _section_probe(probes: list[tuple[Path, dict]]) -> Section:
     return section
 
 
+def _interval(row: dict, low: str, high: str, p: str) -> str:
+    values = [row.get(k) for k in ("diff", low, high, p)]
+    if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in values[:3]):
+        return "n/a (one run an arm shows no training spread)" if low.startswith("cluster") else "n/a"
+    d, lo, hi, pv = values
+    return f"{100 * d:+.1f} pp [{100 * lo:+.1f}, {100 * hi:+.1f}], p={pv:.3g}"
+
+
+def _section_comparisons(comparisons: list[tuple[Path, dict]]) -> Section:
+    section = Section("Comparisons of training recipes")
+    if not comparisons:
+        return section.note(
+            "No comparison among the inputs: `condground compare` trains two recipes side by side and pairs "
+            "their late checkpoints on the same held-out layouts; give its comparison folder as --input_dir."
+        )
+    rows, figures = [], []
+    for folder, data in comparisons:
+        for row in data["summary"]:
+            rows.append([
+                f"{row.get('lever')} vs {row.get('baseline_arm')}", task_title(str(row.get("task", ""))),
+                str(row.get("condition", "")), str(row.get("seeds", "")), str(row.get("n", "")),
+                f"{pct(row.get('baseline'))}%", f"{pct(row.get('treated'))}%",
+                _interval(row, "cluster_low", "cluster_high", "cluster_p"), str(row.get("seed_effects", "")),
+                _interval(row, "diff_low", "diff_high", "p"), str(row.get("differences") or "none"),
+            ])  # fmt: skip
+        figures.append(
+            Figure(
+                f"compare-{folder.name}",
+                (folder / (data.get("figure") or "compare.png")).read_bytes(),
+                f"{folder.name}: held-out success of every checkpoint (95 % Wilson intervals), per condition.",
+            )
+        )
+    columns = ["comparison", "task", "condition", "seeds", "pooled pairs", "baseline", "treated",
+               "difference (layout-clustered, run-aware)", "per-seed effects", "Newcombe / McNemar (pairs as independent)",
+               "budget or data differences"]  # fmt: skip
+    section.blocks += [
+        Para(
+            "treated − baseline over the pooled late checkpoints of every training run, on the same held-out "
+            "layouts. The run-aware interval takes the layout as the pairing unit and the training run as the "
+            "replicate (Student's t, Welch–Satterthwaite degrees of freedom); with two runs an arm the training "
+            "spread rests on two runs each. The Newcombe interval treats every pooled pair as independent and "
+            "is shown for comparison with earlier tables only."
+        ),
+        Table("comparisons", "Comparisons: treated − baseline", columns, rows, open=True),
+        *figures,
+    ]
+    return section
+
+
 OPERATOR = " (operator-scored)"
 
 
@@ -903,6 +952,7 @@ def build_document(inputs: Inputs, cfg: ReportConfig) -> Document:
             _section_tsne(inputs.diagnostics),
             _section_attention(inputs.attention),
             _section_probe(inputs.probes),
+            _section_comparisons(inputs.comparisons),
             _section_provenance(inputs, cfg),
         ],
     )

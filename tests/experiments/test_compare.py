@@ -1,7 +1,8 @@
-"""examples/levers.py, which every published lever and curve comes from: the wall-clock minutes it reads from
-training logs (resumed runs, tqdm skipping steps at GPU rates) and its pairing against a published baseline."""
+"""`condground compare`: two recipes trained side by side and paired on the same held-out layouts, end to end
+at a tiny budget (real training, real sweeps); the pairing against a published baseline and per condition; the
+refusals of arms that differ in budget or data and of held-out layouts a recording trained on."""
 
-import importlib.util
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -10,17 +11,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lerobot_condground.evaluation.results import TABLE_COLUMNS, write_table
+from helpers import run_cli
+from lerobot_condground.evaluation.results import TABLE_COLUMNS, read_table, write_table
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def levers():
-    spec = importlib.util.spec_from_file_location("levers", ROOT / "examples" / "levers.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+ROOT = Path(__file__).resolve().parents[2]
+TASK = "PickPlaceFixedBin-v0"
+TINY = (
+    "--policy.dim_model=32 --policy.n_heads=2 --policy.dim_feedforward=64 --policy.n_encoder_layers=1 "
+    "--policy.backbone_width=8 --batch_size=2"
+)
 
 
 def flags(success, seed: int) -> dict:
@@ -31,37 +30,94 @@ def flags(success, seed: int) -> dict:
             "placed_in_competitor_receptacle": np.zeros_like(success), "training_seed": seed}  # fmt: skip
 
 
-def bar(done: int, total: int, seconds: int) -> str:
-    """One tqdm line as `condground train` writes it."""
-    return f"Training:  {100 * done // total}%| | {done}/{total} [{seconds // 60:02d}:{seconds % 60:02d}<00:10,  1.00step/s]"
+@pytest.fixture(scope="module")
+def small_recording(tmp_path_factory) -> Path:
+    """Two expert episodes of Task 1 (layout seeds 0 and 1) at the CPU configuration's 96x128."""
+    root = tmp_path_factory.mktemp("compare") / "data"
+    run_cli(
+        "condground", "record", f"--env.task={TASK}", "--env.observation_height=96", "--env.observation_width=128",
+        "--dataset.repo_id=local/compare", f"--dataset.root={root}", "--dataset.num_episodes=2", "--progress=false",
+    )  # fmt: skip
+    return root
 
 
-def test_minutes_add_up_over_a_resumed_run(levers, tmp_path):
-    # 6000 steps, 2 s a step until a kill at step 2500; resumed from the 2000 checkpoint at 1 s a step.
-    first = [bar(k, 6000, 2 * k) for k in range(0, 2501)]
-    second = [bar(k, 4000, k) for k in range(0, 4001)]
-    log = tmp_path / "run.log"
-    log.write_text("\r".join(first) + "\n# resumed\n" + "\r".join(second))
-    assert levers.elapsed_minutes(log, 1000, 6000) == pytest.approx(2000 / 60)
-    # the steps past 2000 of the killed run were lost: they do not count
-    assert levers.elapsed_minutes(log, 3000, 6000) == pytest.approx((4000 + 1000) / 60)
-    assert levers.elapsed_minutes(log, 6000, 6000) == pytest.approx((4000 + 4000) / 60)
+def compare(data: Path, out: Path, *flags: str, check: bool = True):
+    return run_cli(
+        "condground", "compare", f"--env.task={TASK}", "--env.episode_length=10", f"--dataset.root={data}",
+        "--baseline.name=small", "--treated.name=wide", "--treated.flags=--policy.dim_feedforward=128",
+        f"--train.flags={TINY}", "--train.seeds=0,1", "--train.steps=2", "--train.save_freq=1", "--eval.pool=1",
+        "--eval.episodes=2", f"--output_dir={out}", "--progress=false", *flags, check=check,
+    )  # fmt: skip
 
 
-def test_gpu_logs_skip_steps_and_a_step_not_reached_is_refused(levers, tmp_path):
-    # At GPU rates tqdm writes every 7th step or so; a run never resumed needs no total.
-    log = tmp_path / "run.log"
-    log.write_text("\r".join(bar(k, 1500, k // 10) for k in [*range(0, 1200, 7), 1500]))
-    assert levers.elapsed_minutes(log, 1000) == pytest.approx((994 // 10) / 60)  # the last line at or before
-    assert levers.elapsed_minutes(log, 1500) == pytest.approx(150 / 60)
-    cut = tmp_path / "cut.log"
-    cut.write_text("\r".join(bar(k, 1500, k) for k in range(0, 800)))  # still training
-    with pytest.raises(SystemExit, match="no progress line at step 1000"):
-        levers.elapsed_minutes(cut, 1000)
+def test_two_recipes_are_trained_scored_paired_published_and_reported(small_recording, tmp_path):
+    out, table = tmp_path / "out", tmp_path / "docs" / "levers.csv"
+    compare(small_recording, out, f"--table={table}")
+    folder = out / "comparisons" / f"{TASK}_wide_vs_small"
+    manifest = json.loads((folder / "compare.json").read_text())
+    assert manifest["kind"] == "compare" and manifest["differences"] == []
+    assert manifest["arms"]["wide"]["flags"] == ["--policy.dim_feedforward=128"]
+    rollouts = pd.read_parquet(folder / "rollouts.parquet")
+    # 2 arms x 2 runs x 1 checkpoint x 2 held-out layouts, each with its stages, from the real sweeps
+    assert len(rollouts) == 8 and set(rollouts["layout_seed"]) == {1_000_000, 1_000_001}
+    assert {"arm", "run", "seed", "step", "pick", "selected_competitor_object"} <= set(rollouts.columns)
+    for arm in ("small", "wide"):
+        for seed in (0, 1):
+            swept = read_table(out / "eval" / f"{TASK}_standard_{arm}_s{seed}" / "000002" / "results.parquet")
+            mine = rollouts[rollouts["arm"].eq(arm) & rollouts["seed"].eq(seed)].sort_values("layout_seed")
+            assert mine["success"].tolist() == swept.sort_values("layout_seed")["success"].tolist()
+    row = pd.read_csv(folder / "summary.csv").iloc[0]
+    assert (row["lever"], row["baseline_arm"], row["seeds"], row["n"]) == ("wide", "small", 2, 4)
+    assert row["treated"] - row["baseline"] == pytest.approx(row["diff"])
+    assert (folder / "compare.png").read_bytes()[:4] == b"\x89PNG"
+    published = pd.read_csv(table)
+    assert published["lever"].tolist() == ["wide"] and "holm_p" in published and "cluster_p" in published
+    assert pd.read_csv(table.with_name("levers_rollouts.csv")).groupby("lever").size().to_dict() == {
+        "small": 4,
+        "wide": 4,
+    }
+
+    # A rerun trains and sweeps nothing again: it re-analyses what is there.
+    logs = {p: p.stat().st_size for p in (out / "train").glob("*.log")}
+    results = {p: p.stat().st_mtime_ns for p in (out / "eval").rglob("results.parquet")}
+    compare(small_recording, out)
+    assert {p: p.stat().st_size for p in logs} == logs and len(logs) == 4
+    assert {p: p.stat().st_mtime_ns for p in results} == results and len(results) == 4
+
+    # The same arm as finished runs: read from their configs (same budget and data), paired the same way.
+    runs = ",".join(str(out / "train" / f"{TASK}_standard_wide_s{seed}") for seed in (0, 1))
+    compare(small_recording, out, "--treated.flags=", f"--treated.runs={runs}")
+    again = json.loads((folder / "compare.json").read_text())
+    assert again["arms"]["wide"]["source"] == "runs" and again["differences"] == []
+    pd.testing.assert_frame_equal(pd.read_csv(folder / "summary.csv").drop(columns="flags"),
+                                  pd.DataFrame([row]).drop(columns="flags"), check_dtype=False)  # fmt: skip
+
+    report = tmp_path / "report" / "report.html"
+    run_cli("condground", "report", f"--input_dir={folder}", f"--output={report}")
+    text = report.with_suffix(".md").read_text()
+    assert "Comparisons of training recipes" in text and "wide vs small" in text
+
+
+def test_arms_that_differ_in_budget_or_data_are_refused_unless_allowed(small_recording, tmp_path):
+    out = tmp_path / "out"
+    refused = compare(small_recording, out, "--treated.flags=--steps=4", check=False)
+    assert refused.returncode == 2
+    assert "small and wide differ in budget or data (steps: 2 -> 4)" in refused.stderr
+    assert "--allow_differences=true" in refused.stderr and not out.exists()
+    other = compare(small_recording, out, f"--treated.flags=--dataset.root={tmp_path}", check=False)
+    assert f"dataset.root: {small_recording.resolve()} -> {tmp_path.resolve()}" in other.stderr
+    assert not out.exists()
+
+
+def test_held_out_layouts_a_recording_trained_on_are_refused(small_recording, tmp_path):
+    refused = compare(small_recording, tmp_path / "out", "--eval.seed_offset=1", check=False)
+    assert refused.returncode == 2
+    assert "trained on 1 of the held-out layouts (seeds 1)" in refused.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_path):
-    """--published_baseline reads the baseline's pooled rollouts from the rollouts table, pairs the lever's sweeps
+    """examples/levers.py --published_baseline (`--baseline.rollouts`) reads the baseline's pooled rollouts from the rollouts table, pairs the lever's sweeps
     against them layout by layout, and leaves the baseline's published rows as they were."""
     task, layouts, rng = "PickPlaceFixedBin-v0", range(1_000_000, 1_000_020), np.random.default_rng(0)
     docs, out = tmp_path / "docs", tmp_path / "out"
@@ -88,7 +144,7 @@ def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_pat
             )
     command = [
         sys.executable, str(ROOT / "examples" / "levers.py"), f"--task={task}", "--data=unused", "--baseline=base",
-        "--published_baseline", "--steps=6", "--every=1", "--seeds=0,1", f"--out={out}", "--lever=big=--policy.dim_model=512",
+        "--published_baseline", "--steps=6", "--every=1", "--seeds=0,1", "--episodes=20", f"--out={out}", "--lever=big=--policy.dim_model=512",
         f"--csv={docs / 'levers.csv'}", "--stage=analyse",
     ]  # fmt: skip
     subprocess.run(command, check=True, capture_output=True, text=True)
@@ -137,10 +193,11 @@ def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_pa
                 out / "eval" / f"{task}_standard_aug_s{seed}" / f"{step:06d}" / "results.parquet",
             )
     command = [
-        sys.executable, str(ROOT / "examples" / "levers.py"), f"--task={task}", "--data=unused", "--baseline=base",
-        "--published_baseline", "--steps=6", "--every=1", "--pool=2", "--seeds=0,1", f"--out={out}",
-        "--lever=aug=--policy.variant=augmentation", f"--csv={docs / 'levers.csv'}", "--stage=analyse",
-        "--conditions=clean,full_mixed",
+        str(Path(sys.executable).parent / "condground"), "compare", f"--env.task={task}", "--baseline.name=base",
+        f"--baseline.rollouts={docs / 'levers_rollouts.csv'}", "--treated.name=aug",
+        "--treated.flags=--policy.variant=augmentation", "--train.steps=6", "--train.save_freq=1", "--eval.pool=2",
+        "--eval.episodes=10", f"--output_dir={out}", f"--table={docs / 'levers.csv'}", "--stage=analyse",
+        "--eval.conditions=clean,full_mixed",
     ]  # fmt: skip
     subprocess.run(command, check=True, capture_output=True, text=True)
     rows = pd.read_csv(docs / "levers.csv").set_index("condition")
@@ -180,7 +237,7 @@ def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_pa
         text=True,
     )
     assert refused.returncode != 0
-    assert "has no rollouts of base" in refused.stderr and "object_color_3" in refused.stderr
+    assert "has 0 rollouts of base" in refused.stderr and "object_color_3" in refused.stderr
 
     # Scored again under one condition: that condition's rows are replaced, the other's are kept.
     subprocess.run(
