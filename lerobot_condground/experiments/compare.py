@@ -292,6 +292,16 @@ def published_rollouts(path: Path, name: str, task: str) -> pd.DataFrame:
     missing = {"lever", "task", "seed", "step", "layout_seed", "success"} - set(table.columns)
     if missing:
         raise ValueError(f"{path}: not a rollouts table (missing {sorted(missing)})")
+    for column in ("seed", "step", "layout_seed", "success"):
+        values = pd.to_numeric(table[column], errors="coerce")
+        bad = table[column][
+            values.isna() | (values != values.round()) | ((column == "success") & ~values.isin([0, 1]))
+        ]
+        if len(bad):
+            allowed = "0 or 1" if column == "success" else "an integer"
+            raise ValueError(
+                f"{path}: {column}={bad.iloc[0]!r} in row {bad.index[0] + 2}; allowed: {allowed}"
+            )
     if "condition" not in table:  # the tables of issue 27 scored clean scenes only
         table = table.assign(condition="clean")
     table = table[table["lever"].eq(name) & table["task"].eq(task)]
@@ -584,6 +594,40 @@ def merge_csv(
     return table
 
 
+def _tables(cfg: CompareConfig) -> list[Path]:
+    """--table and the companion tables `publish` and `failures` merge into."""
+    if not cfg.table:
+        return []
+    path = Path(cfg.table)
+    return [
+        path,
+        *(
+            path.with_name(f"{path.stem}_{kind}.csv")
+            for kind in ("checkpoints", "rollouts", "funnel", "failures")
+        ),
+    ]
+
+
+def check_table(path: Path) -> None:
+    """A table a comparison merges into must be one it could have written: a user's other file is refused
+    before any work (merging would overwrite it)."""
+    if path.suffix != ".csv":
+        raise ValueError(
+            f"--table={path} is not allowed; allowed: a .csv file (a lever table, new or existing)"
+        )
+    if not path.exists():
+        return
+    try:
+        columns = set(pd.read_csv(path, nrows=1).columns) if path.is_file() else set()
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError):
+        columns = set()
+    if not {"lever", "task"} <= columns:
+        raise ValueError(
+            f"{path} exists and is not a lever table (no lever and task columns); allowed: a table an earlier "
+            "comparison wrote, or a new path"
+        )
+
+
 def publish(cfg, arms, summary, checkpoints, every, funnel) -> None:
     """The summary into --table (Holm over every comparison the table holds: one family), and the arms
     trained or evaluated here into its companion tables (a published baseline's rows stay as they were)."""
@@ -680,6 +724,12 @@ def failures(cfg: CompareConfig, arms: list[Arm]) -> pd.DataFrame:
 
 def run(cfg: CompareConfig) -> pd.DataFrame | None:
     arms = [resolve_arm(cfg, cfg.baseline), resolve_arm(cfg, cfg.treated)]
+    runs = [run.resolve() for arm in arms for run in arm.runs]
+    if len(set(runs)) != len(runs):
+        twice = next(r for r in runs if runs.count(r) > 1)
+        raise ValueError(f"the run {twice} is given twice; allowed: each training run in one arm, once")
+    for path in _tables(cfg):
+        check_table(path)
     found = differences(*arms)
     if found and not cfg.allow_differences:
         raise ValueError(

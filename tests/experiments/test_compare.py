@@ -248,3 +248,49 @@ def test_each_condition_is_paired_on_its_own_and_a_missing_one_is_refused(tmp_pa
     assert pd.read_csv(docs / "levers_rollouts.csv").groupby(["lever", "condition"]).size()[
         "aug"
     ].to_dict() == {"clean": 40, "full_mixed": 40}
+
+
+def fake_run(folder: Path, config: str) -> Path:
+    """A training run folder whose last checkpoint's train_config.json holds `config` (untrusted text)."""
+    path = folder / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(config)
+    return folder
+
+
+@pytest.mark.parametrize(
+    "setup, flags, named",
+    [
+        (lambda d: (d / "mine.csv").write_text("name,score\nann,3\n"), ["--table={d}/mine.csv"],
+         "mine.csv exists and is not a lever table"),
+        (lambda d: None, ["--table={d}/levers.txt"], "levers.txt is not allowed; allowed: a .csv file"),
+        (lambda d: pd.DataFrame({"lever": ["base"], "task": [TASK], "seed": [0], "step": [6], "layout_seed": [1_000_000],
+                                 "success": ["yes"]}).to_csv(d / "r.csv", index=False),
+         ["--baseline.rollouts={d}/r.csv"], "success='yes' in row 2; allowed: 0 or 1"),
+        (lambda d: None, ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "train_config.json: not a finished"),
+        (lambda d: [fake_run(d / n, "{not json") for n in "ab"], ["--treated.flags=", "--treated.runs={d}/a,{d}/b"],
+         "train_config.json"),
+        (lambda d: [fake_run(d / n, '{"steps": "6000", "save_freq": 2000}') for n in "ab"],
+         ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "steps '6000' and save_freq 2000 are not step counts"),
+        (lambda d: [fake_run(d / n, '{"steps": 6, "save_freq": 2}') for n in "a"],
+         ["--treated.flags=", "--treated.runs={d}/a,{d}/a"], "is given twice"),
+    ],
+)  # fmt: skip
+def test_hostile_tables_and_runs_are_one_line_before_any_work(
+    setup, flags, named, tmp_path, monkeypatch, capsys
+):
+    """A user's file as --table, a rollouts table with garbage, runs that are not runs or a run given twice:
+    one line naming the value, exit code 2, the user's files untouched, nothing written."""
+    from lerobot_condground.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    setup(tmp_path)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    args = ["compare", f"--env.task={TASK}", "--baseline.name=base", "--treated.name=big", "--train.steps=6",
+            "--train.save_freq=1", "--eval.episodes=2", "--stage=analyse", "--output_dir=out",
+            *(f.format(d=tmp_path) for f in flags)]  # fmt: skip
+    assert main(args) == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if "third-party plugin" not in line]
+    assert len(err) == 1 and err[0].startswith("condground compare:") and named in err[0], err
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "out").exists()
