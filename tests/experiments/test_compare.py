@@ -117,7 +117,8 @@ def test_held_out_layouts_a_recording_trained_on_are_refused(small_recording, tm
 
 
 def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_path):
-    """examples/levers.py --published_baseline (`--baseline.rollouts`) reads the baseline's pooled rollouts from the rollouts table, pairs the lever's sweeps
+    """docs/learning-curve/levers.py --published_baseline (`--baseline.rollouts`) reads the baseline's pooled
+    rollouts from the rollouts table, pairs the lever's sweeps
     against them layout by layout, and leaves the baseline's published rows as they were."""
     task, layouts, rng = "PickPlaceFixedBin-v0", range(1_000_000, 1_000_020), np.random.default_rng(0)
     docs, out = tmp_path / "docs", tmp_path / "out"
@@ -143,7 +144,7 @@ def test_a_lever_is_paired_against_a_published_baseline_without_its_runs(tmp_pat
                 rows, out / "eval" / f"{task}_standard_big_s{seed}" / f"{step:06d}" / "results.parquet"
             )
     command = [
-        sys.executable, str(ROOT / "examples" / "levers.py"), f"--task={task}", "--data=unused", "--baseline=base",
+        sys.executable, str(ROOT / "docs" / "learning-curve" / "levers.py"), f"--task={task}", "--data=unused", "--baseline=base",
         "--published_baseline", "--steps=6", "--every=1", "--seeds=0,1", "--episodes=20", f"--out={out}", "--lever=big=--policy.dim_model=512",
         f"--csv={docs / 'levers.csv'}", "--stage=analyse",
     ]  # fmt: skip

@@ -2,7 +2,7 @@
 demonstrations recorded as video and losslessly (`condground record --dataset.video=false`, same --seed), read
 frame by frame, the mean absolute difference per segmentation label and the target cube's median colour.
 
-    python examples/codec_gap.py outputs/levers/data/PickPlaceFixedBin-v0_dart06_200 \\
+    python docs/learning-curve/v2/codec_gap.py outputs/levers/data/PickPlaceFixedBin-v0_dart06_200 \\
         outputs/levers/data/PickPlaceFixedBin-v0_png_200 --frames=150
 """
 

@@ -6,7 +6,7 @@
 # under $OUT: results (sweep parquets, training logs, configs) as one tarball, and this script's log.
 #
 #   OUT=/tmp/out DEVICE=cpu DEMOS=4 SHARDS=2 STEPS=20 EVERY=10 BATCH=4 LOADERS=1 EPISODES=2 POOL=2 \
-#       bash examples/device_curve.sh          # the same path at toy scale on a CPU (about 4 minutes)
+#       bash docs/learning-curve/gpu/device_curve.sh          # the same path at toy scale on a CPU (about 4 minutes)
 #
 # The machine has PyTorch but not LeRobot or MuJoCo: docs/learning-curve/gpu/README.md says which wheels
 # travel with the call (64 MiB in all, with the working tree) and gives the call itself.

@@ -1,6 +1,6 @@
-"""Learning-curve CSVs and plots from the runs of examples/learning_curve.sh.
+"""Learning-curve CSVs and plots from the runs of docs/learning-curve/learning_curve.sh.
 
-    python examples/learning_curve.py --out=outputs/learning-curve --csv_dir=docs/learning-curve TASK:VARIANT ...
+    python docs/learning-curve/learning_curve.py --out=outputs/learning-curve --csv_dir=docs/learning-curve TASK:VARIANT ...
 
 Per run: <task>_<variant>[_<flags>].csv (minutes,steps,samples,success,n,ci_low,ci_high), the training loss
 as <...>_loss.csv, and one plot per task (<task>.png): clean success against wall-clock minutes, and loss.

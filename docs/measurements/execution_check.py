@@ -1,6 +1,6 @@
 """Same weights, other ways of executing ACT's action chunk: paired clean success on the same layouts.
 
-    python examples/execution_check.py --checkpoint=.../checkpoints/0009000/pretrained_model \
+    python docs/measurements/execution_check.py --checkpoint=.../checkpoints/0009000/pretrained_model \
         --task=PickPlaceFixedBin-v0 --out=outputs/execution --csv=docs/learning-curve/execution.csv \
         --baseline=outputs/learning-curve/eval/PickPlaceFixedBin-v0_standard/0009000
 

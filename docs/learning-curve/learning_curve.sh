@@ -6,7 +6,7 @@
 # `condground sweep`. Writes docs/learning-curve/<task>_<variant>.csv (minutes,steps,samples,success,n,
 # ci_low,ci_high; 95 % Wilson intervals) and one plot per task.
 #
-#   RUNS="PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard" MINUTES=60 bash examples/learning_curve.sh
+#   RUNS="PickPlaceFixedBin-v0:standard PickPlaceRandomBin-v0:standard" MINUTES=60 bash docs/learning-curve/learning_curve.sh
 #
 # A run is TASK:VARIANT[:FLAG,FLAG...][@NAME] (extra lerobot-train flags, comma-separated, applied after
 # the configuration's), named <task>_<variant>_<NAME>, or by its whole spec without @NAME. MINUTES is each run's total training time: rerunning skips
@@ -96,4 +96,4 @@ for run in $RUNS; do  # one run's checkpoints after another, the runs side by si
 done
 wait
 
-python examples/learning_curve.py --out="$OUT" --csv_dir="$CSV_DIR" --suffix="$SUFFIX" $RUNS
+python docs/learning-curve/learning_curve.py --out="$OUT" --csv_dir="$CSV_DIR" --suffix="$SUFFIX" $RUNS

@@ -1,7 +1,7 @@
-"""The learning-curve set of a device run (examples/device_curve.sh) from the results it brought back.
+"""The learning-curve set of a device run (docs/learning-curve/gpu/device_curve.sh) from the results it brought back.
 
     mkdir -p outputs/device && tar xzf "$FILES_AT/results.tgz" -C outputs/device   # FILES_AT: the call's files_at
-    python examples/device_curve.py --results=outputs/device --batch=32 --csv_dir=docs/learning-curve/gpu
+    python docs/learning-curve/gpu/device_curve.py --results=outputs/device --batch=32 --csv_dir=docs/learning-curve/gpu
 
 Writes `<csv_dir>/<task>_<variant>.csv` (minutes,steps,samples,success,n,ci_low,ci_high,seed: minutes of
 training from the run's progress bars, every swept checkpoint) and `<csv_dir>/rollouts.csv` (each rollout's
@@ -17,12 +17,38 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import pandas as pd
-from levers import elapsed_minutes  # the script's own folder is on sys.path
 
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import rate
 
 RUN = re.compile(r"(?P<task>.+-v\d+)_(?P<variant>[a-z_]+)_s(?P<seed>\d+)")
+
+
+def elapsed_minutes(log: Path, step: int, total: int | None = None) -> float:
+    """Wall-clock minutes of training at `step`, from the progress bars `condground train` logs. A resumed
+    run's bar counts the steps left from 0; the minutes add up over the segments, each counted up to the
+    checkpoint the next one resumed from (steps past it were lost with the run that made them). At GPU rates
+    tqdm skips steps: the last line at or before the step counts. `total` defaults to the first bar's length
+    (right for a run never resumed)."""
+    elapsed: dict[int, dict[int, float]] = {}  # steps left at the segment's start -> {step in it: minutes}
+    for done, left, clock in re.findall(
+        r" (\d+)/(\d+) \[(\d+(?::\d+){1,2})<", log.read_text(errors="replace")
+    ):
+        seconds = sum(int(v) * 60**i for i, v in enumerate(reversed(clock.split(":"))))
+        elapsed.setdefault(int(left), {}).setdefault(int(done), seconds / 60)
+    total = total or max(elapsed, default=0)
+    starts = sorted(total - left for left in elapsed)  # the step each segment started from
+    minutes = 0.0
+    for i, start in enumerate(starts):
+        stop = starts[i + 1] if i + 1 < len(starts) else total
+        lines, upto = elapsed[total - start], min(step, stop) - start
+        before = [done for done in lines if done <= upto]
+        if not before or max(lines) < upto:
+            raise SystemExit(f"{log}: the run from step {start} has no progress line at step {upto + start}")
+        minutes += lines[max(before)]
+        if step <= stop:
+            return minutes
+    raise SystemExit(f"{log}: step {step} is past the run's {total} steps")
 
 
 def outcomes(step_dir: Path) -> pd.DataFrame:

@@ -2,7 +2,7 @@
 dataset frames with batch norm on its running statistics (inference) and on batch statistics (training),
 dropout off and no gradients (so no copy-paste) in both.
 
-    python examples/batchnorm_gap_check.py CHECKPOINT_DIR DATASET_ROOT
+    python docs/measurements/batchnorm_gap_check.py CHECKPOINT_DIR DATASET_ROOT
 """
 
 import sys

@@ -5,7 +5,7 @@
 # evaluated on clean scenes with `condground sweep`. Writes one CSV per backbone norm under $CSV_DIR:
 # minutes,steps,samples,success,n,ci_low,ci_high (95 % Wilson intervals).
 #
-#   MINUTES=55 EVERY=250 EVAL_EVERY=500 EPISODES=50 bash examples/backbone_norm_check.sh
+#   MINUTES=55 EVERY=250 EVAL_EVERY=500 EPISODES=50 bash docs/measurements/backbone_norm_check.sh
 #
 # bf16 autocast (--policy.use_amp=true) is left off on purpose: it is fast only where the CPU has
 # AVX-512 BF16 or AMX; on an AVX2-only CPU a ResNet-18 step was 22x slower under it than in fp32.

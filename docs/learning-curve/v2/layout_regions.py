@@ -1,6 +1,6 @@
 """Where on the table a policy fails: held-out success by where the target object starts.
 
-    python examples/layout_regions.py --arm=12k=outputs/levers6/eval/PickPlaceFixedBin-v0_standard_dart06_12k_s*/01[012]000
+    python docs/learning-curve/v2/layout_regions.py --arm=12k=outputs/levers6/eval/PickPlaceFixedBin-v0_standard_dart06_12k_s*/01[012]000
 
 Each --arm is NAME=GLOB of sweep folders (their results.parquet); every rollout of an arm is placed by the
 target object's starting bearing from the arm's base, recomputed from its seed (the sweep stores where

@@ -9,7 +9,7 @@ frame). A pixel-level classifier (logistic regression on the patch's standardize
 vector machine) tells the target from each kind, 5-fold cross-validated; chance is 50 %. The patch covers
 the same 11 cm of table at every size, so only the pixel count changes.
 
-    python examples/separability.py --task=PickPlaceFixedBin-v0 --layouts=150 --sizes=96x128,144x192,240x320 \
+    python docs/learning-curve/v3/separability.py --task=PickPlaceFixedBin-v0 --layouts=150 --sizes=96x128,144x192,240x320 \
         --output=docs/learning-curve/v3/separability.csv
 
 With `--camera_codec=video` every frame first goes through the dataset's video codec as one stream (the

@@ -4,7 +4,7 @@ held-out layouts (the sweep's, seeds 1 000 000 on) this prints, per checkpoint, 
 the first chunk against the cube's bearing from the robot's base: their correlation and slope (a policy that
 follows the cube: r near 1; one that ignores the image: r near 0, the same chunk in every layout).
 
-    python examples/first_chunk_check.py --task=PickPlaceFixedBin-v0 --layouts=20 CHECKPOINT_DIR [...]
+    python docs/learning-curve/v3/first_chunk_check.py --task=PickPlaceFixedBin-v0 --layouts=20 CHECKPOINT_DIR [...]
 
 --camera_codec=video shows the policy its frames through the dataset's video codec (`--env.camera_codec`).
 """

@@ -13,7 +13,7 @@ default copy-paste settings, and counts, over the frames a paste went into:
 each split by phase (0: acquire, 1: place) and, in phase 0, for the frames where the gripper is within
 `--near` pixels of the cube (the grasp, where `full` loses its points).
 
-    python examples/paste_overlap.py --task=PickPlaceFixedBin-v0 --episodes=20 --output=docs/learning-curve/v3/paste_overlap.csv
+    python docs/learning-curve/v3/paste_overlap.py --task=PickPlaceFixedBin-v0 --episodes=20 --output=docs/learning-curve/v3/paste_overlap.csv
 """
 
 import argparse

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A 1000-step probe (issue 55): the CPU configuration's 6000-step cosine run of one arm on Task 1, stopped once its
 # 1000-step checkpoint is saved, then the first-chunk check on 20 held-out layouts, raw and through the codec.
-#   bash examples/probe_1000.sh NAME DATA_ROOT SEED FLAGS...
+#   bash docs/learning-curve/v3/probe_1000.sh NAME DATA_ROOT SEED FLAGS...
 set -uo pipefail
 source .venv/bin/activate
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 MUJOCO_GL=egl HF_HUB_OFFLINE=1
@@ -24,7 +24,7 @@ if [ ! -f $CK/model.safetensors ]; then
   done
   wait $PID 2>/dev/null
 fi
-python examples/first_chunk_check.py --task=$T --layouts=20 $CK > $OUT.chunk.txt 2>&1
-python examples/first_chunk_check.py --task=$T --layouts=20 --camera_codec=video $CK >> $OUT.chunk.txt 2>&1
+python docs/learning-curve/v3/first_chunk_check.py --task=$T --layouts=20 $CK > $OUT.chunk.txt 2>&1
+python docs/learning-curve/v3/first_chunk_check.py --task=$T --layouts=20 --camera_codec=video $CK >> $OUT.chunk.txt 2>&1
 grep "r = " $OUT.chunk.txt
 grep -o "l1_loss:[0-9.]*" $OUT.log | tail -1

@@ -1,6 +1,6 @@
 """One checkpoint under both servo modes of the simulation: paired outcomes on the same clean layouts.
 
-    python examples/servo_check.py --task=PickPlaceFixedBin-v0 \
+    python docs/measurements/servo_check.py --task=PickPlaceFixedBin-v0 \
         --checkpoint=outputs/reproduce/train/PickPlaceFixedBin-v0/augmentation/seed0/checkpoints/009000/pretrained_model \
         --out=outputs/servo --csv=docs/servo/PickPlaceFixedBin-v0_augmentation.csv
 

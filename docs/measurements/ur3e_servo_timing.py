@@ -4,7 +4,7 @@ The worker streams servoJ through the real ur_rtde RTDEControlInterface; the fak
 point it receives. Prints the achieved servo rate against the configured one (as a ratio) and the
 interval distribution, for 2 s of 20 Hz targets:
 
-    .venv/bin/python examples/ur3e_servo_timing.py
+    .venv/bin/python docs/measurements/ur3e_servo_timing.py
 """
 
 import sys
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
 
 from lerobot_condground.core.ur3e import MOTOR_NAMES  # noqa: E402
 from lerobot_condground.robots.config_ur3e import UR3eConfig  # noqa: E402

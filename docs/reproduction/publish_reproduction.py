@@ -1,7 +1,7 @@
 """Copies the small outputs of a `condground reproduce` run's finished stages into a folder kept in git
 (results tables, JSON, report, figures; never checkpoints, datasets or logs).
 
-    python examples/publish_reproduction.py outputs/reproduce docs/reproduction/cpu
+    python docs/reproduction/publish_reproduction.py outputs/reproduce docs/reproduction/cpu
 
 A stage counts once its marker `stages/<stage>.json` exists; rerunning adds the stages finished since.
 Training stages contribute their `train_config.json`, recordings their `meta/info.json` and provenance.

@@ -3,7 +3,7 @@
 # clean demonstrations, each evaluated under `clean` and `full_mixed` with the stock lerobot-eval.
 # Needs a GPU: on a 2-core CPU one training step at ACT's size takes ~2.6 s.
 #
-#   DEVICE=cuda STEPS=20000 bash examples/learning_check.sh
+#   DEVICE=cuda STEPS=20000 bash docs/learning-curve/learning_check.sh
 #
 # Expected direction (paper, Table 1): standard collapses under full_mixed, ACT-Modified holds.
 set -euo pipefail

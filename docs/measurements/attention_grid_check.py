@@ -9,7 +9,7 @@ against each other: the relevant entity shares its tokens with distractors. Prin
 share of frames whose best token still holds a distractor. Grids other than the policy's own are the
 same frames pooled finer (8x10 is what a 240x320 frame gives at stride 32).
 
-    python examples/attention_grid_check.py CHECKPOINT_DIR DATASET_ROOT [FRAMES]
+    python docs/measurements/attention_grid_check.py CHECKPOINT_DIR DATASET_ROOT [FRAMES]
 """
 
 import sys

@@ -2,7 +2,7 @@
 its web viewer, headless Chromium renders it with SwiftShader (WebGL on the CPU) and saves the page.
 
     condground view --dataset.repo_id=local/PickPlaceFixedBin-v0 --dataset.root=DIR --episode=0 --output=ep0.rrd
-    python examples/view_screenshot.py ep0.rrd docs/images/condground-view.png
+    python docs/recording/view_screenshot.py ep0.rrd docs/images/condground-view.png
 
 Rerun's analytics are switched off first (`rerun analytics disable`, in a private config folder), and
 nothing is fetched from the network: the viewer comes with the rerun-sdk wheel.

@@ -1,7 +1,7 @@
 """The lever commands of docs/learning-curve/ (issue 27's flags), as calls of `condground compare`: one
 comparison of the baseline against each --lever, in order, into the same --csv table and --out folder.
 
-    python examples/levers.py --task=PickPlaceFixedBin-v0 --data=outputs/levers/data/PickPlaceFixedBin-v0_dart06_200 \\
+    python docs/learning-curve/levers.py --task=PickPlaceFixedBin-v0 --data=outputs/levers/data/PickPlaceFixedBin-v0_dart06_200 \\
         --baseline=actsize_6k --lever='augmentation=--policy.variant=augmentation' --seeds=0,1 --steps=6000 \\
         --every=1000 --conditions=clean,full_mixed --out=outputs/levers28 --csv=docs/learning-curve/v3/levers.csv
 

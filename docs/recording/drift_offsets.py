@@ -1,6 +1,6 @@
 """How far `condground record --drift.std` moves the tool off the expert's path, phase by phase.
 
-    python examples/drift_offsets.py --task=PickPlaceFixedBin-v0 --std=0.03 --layouts=20
+    python docs/recording/drift_offsets.py --task=PickPlaceFixedBin-v0 --std=0.03 --layouts=20
 
 Each layout runs twice with the same seed, without drift and with it (same expert targets); the table is the
 distance between the two tools at each step (cm), by the expert's phase, and how often the drifted expert
