@@ -5,7 +5,9 @@ retyped as `pi05_grounded`, with the processors of its variant.
 factory: starting straight from `pi05_base` would train without the cue, instruction and label steps, and
 with the hard-coded PaliGemma tokenizer. DIR holds `config.json` (type `pi05_grounded`, the dataset's
 features), a link to the source's `model.safetensors` (nothing is copied) and processor files that list the
-plugin's steps and the configured tokenizer. Names and shapes of the weights are checked against the
+plugin's steps and the configured tokenizer. A tokenizer given as a local directory is copied into DIR
+(`tokenizer/`) and named there by its absolute path, as the stock tokenizer step loads it from any working
+folder; `pi05_start.json` records where it came from. Names and shapes of the weights are checked against the
 configuration on the meta device (no memory), so a mismatch is an error now, not after loading.
 """
 
@@ -29,6 +31,8 @@ from .modeling_pi05_grounded import WEIGHTS, PI05GroundedPolicy, weights_file
 from .processor_pi05_grounded import make_pi05_grounded_pre_post_processors
 
 SOURCE_TYPES = ("pi05", "pi05_grounded")
+TOKENIZER_DIR = "tokenizer"
+START_FILE = "pi05_start.json"
 
 
 def source_config(source: str, overrides: list[str]) -> PI05GroundedConfig:
@@ -100,6 +104,15 @@ def write_starting_checkpoint(
     check_weights(config, weights)
     # Built before anything is written: an unreachable tokenizer fails here.
     pre, post = make_pi05_grounded_pre_post_processors(config, dataset_stats=dataset_meta.stats)
+    # A relative tokenizer path would load only from the folder the command ran in, an absolute one outside
+    # the checkpoint is refused by condground's commands: the checkpoint carries its own copy.
+    local_tokenizer = Path(config.tokenizer_name).expanduser()
+    local_tokenizer = local_tokenizer.resolve() if local_tokenizer.is_dir() else None
+    if local_tokenizer is not None:
+        config.tokenizer_name = str(output_dir.resolve() / TOKENIZER_DIR)
+        for step in pre.steps:
+            if getattr(step, "tokenizer_name", None) is not None:
+                step.tokenizer_name = config.tokenizer_name
     # Written beside the output and renamed when whole: a failed run leaves no half checkpoint in
     # --output_dir to block the rerun (a killed one at most a hidden `.NAME.*` folder beside it).
     output_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -107,6 +120,10 @@ def write_starting_checkpoint(
     try:
         config.save_pretrained(partial)
         (partial / WEIGHTS).symlink_to(weights.resolve())
+        if local_tokenizer is not None:
+            shutil.copytree(local_tokenizer, partial / TOKENIZER_DIR)
+        start = {"source": source, "tokenizer_source": str(local_tokenizer or config.tokenizer_name)}
+        (partial / START_FILE).write_text(json.dumps(start, indent=1))
         pre.save_pretrained(partial)
         post.save_pretrained(partial)
         os.replace(partial, output_dir)  # onto nothing, or onto the empty folder checked above

@@ -6,6 +6,7 @@ with and without gradient checkpointing, strict weight loading, the full size on
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -393,6 +394,47 @@ def test_pi05_start_that_fails_half_way_leaves_nothing_in_the_way(
     with tiny_pi05():
         write_starting_checkpoint(str(source), overrides, meta, start)
     assert sorted(p.name for p in start.iterdir())[:2] == ["config.json", "model.safetensors"]
+
+
+def test_pi05_start_copies_a_local_tokenizer_into_the_checkpoint(
+    tokenizer, routing_dataset, tmp_path, monkeypatch
+):
+    """A tokenizer given by a relative path is copied into the started checkpoint and named there by its
+    absolute path (config and tokenizer step), so the checkpoint loads from any folder and passes the
+    checkpoint-folder rule of condground's commands; where it came from is recorded."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from transformers import AutoTokenizer
+
+    from lerobot_condground.core.trust import check_name
+    from lerobot_condground.policies.pi05_grounded.starting import write_starting_checkpoint
+
+    source = tmp_path / "source"
+    make_policy(make_config(tokenizer, cls=PI05Config, labels=()), cls=PI05Policy).save_pretrained(source)
+    meta = LeRobotDatasetMetadata("local/routing", root=routing_dataset)
+    work = tmp_path / "work" / "here"
+    work.mkdir(parents=True)
+    monkeypatch.chdir(work)
+    relative = Path(os.path.relpath(tokenizer, work))
+    with tiny_pi05():
+        write_starting_checkpoint(str(source), [f"--tokenizer_name={relative}"], meta, Path("start"))
+    start = (work / "start").resolve()
+    named = read_json(start / "config.json")["tokenizer_name"]
+    step = next(
+        s
+        for s in read_json(start / "policy_preprocessor.json")["steps"]
+        if s["registry_name"] == "tokenizer_processor"
+    )
+    assert named == step["config"]["tokenizer_name"] == str(start / "tokenizer")
+    assert sorted(p.name for p in (start / "tokenizer").iterdir()) == sorted(
+        p.name for p in tokenizer.iterdir()
+    )
+    assert read_json(start / "pi05_start.json")["tokenizer_source"] == str(tokenizer.resolve())
+    check_name(start, named, "tokenizer_name")  # inside the checkpoint's folder
+    monkeypatch.chdir(tmp_path)
+    assert (
+        AutoTokenizer.from_pretrained(named)("pick").input_ids
+        == AutoTokenizer.from_pretrained(tokenizer)("pick").input_ids
+    )
 
 
 def test_pi05_start_then_stock_lerobot_train(tokenizer, routing_dataset, tmp_path, monkeypatch):
