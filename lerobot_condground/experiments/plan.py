@@ -235,7 +235,13 @@ class ReproduceConfig:
                 raise ValueError(
                     f"--train.extra_flags holds {flag!r}; allowed: lerobot-train flags --key=value separated by spaces"
                 )
-            key = flag.split("=", 1)[0]
+            key, value = flag.split("=", 1)
+            _check_yaml_value(flag, value)
+            if key in DEFEATING_TRAIN_FLAGS and DEFEATING_TRAIN_FLAGS[key](value):
+                raise ValueError(
+                    f"--train.extra_flags holds {flag!r}, which defeats every training stage ({DEFEATS[key]}); "
+                    "allowed: any other lerobot-train flag"
+                )
             if key in STAGE_TRAIN_FLAGS:
                 instead = STAGE_TRAIN_FLAGS[key]
                 raise ValueError(
@@ -300,6 +306,37 @@ class ReproduceConfig:
         return settings
 
 
+def _check_yaml_value(flag: str, value: str) -> None:
+    """draccus reads each value as YAML: one it cannot scan (a backquote, `$(...)`, a stray quote) is named
+    with its character here, not as a YAML traceback from the pre-check's parse."""
+    import yaml
+
+    try:
+        yaml.safe_load(value)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        at = (
+            f" at {value[mark.column]!r} (character {mark.column + 1})"
+            if mark and mark.column < len(value)
+            else ""
+        )
+        raise ValueError(
+            f"--train.extra_flags holds {flag!r}, whose value YAML cannot read{at}; allowed: a plain value, or "
+            "one in quotes YAML reads"
+        ) from None
+
+
+# lerobot-train flags that would leave a training stage nothing to hand on, and why.
+DEFEATING_TRAIN_FLAGS = {
+    "--save_checkpoint": lambda value: value.strip().lower() in ("false", "no", "off", "0"),
+    "--policy.path": lambda value: True,
+    "--policy.pretrained_path": lambda value: True,
+}
+DEFEATS = {
+    "--save_checkpoint": "no checkpoint is saved, and every later stage reads the training's checkpoints",
+    "--policy.path": "the stage would train the policy it names instead of the plan's variant",
+    "--policy.pretrained_path": "the stage would start from weights the plan does not record",
+}
 # lerobot-train flags a training stage sets after --train.extra_flags, with the reproduce flag that sets each.
 STAGE_TRAIN_FLAGS = {
     "--policy.type": None,
