@@ -407,6 +407,14 @@ def run_subgoals(cfg: SubgoalsConfig) -> Path:
             f"--policy.path={loaded.path} is the scripted expert, which reads the simulation's state; the robot "
             "needs a checkpoint"
         )
+    if loaded.needs_prompts:
+        # Checked before the weights load: the routing env (and the arm) give no prompt crops, and the policy
+        # would refuse only at its first step, after the output directory was set up.
+        raise ValueError(
+            f"--policy.path={loaded.path} reads prompt crops (act_modified with use_prompts), which "
+            f"{ROUTING_TASK} does not give; allowed: a checkpoint without prompts (pi05_grounded, or act_modified "
+            "trained with --policy.use_prompts=false)"
+        )
     settings = env_settings(cfg.condition, loaded)
     spec = sim_spec(cfg, loaded, settings)
     check_fits(cfg, loaded, spec)
@@ -431,15 +439,21 @@ def run_subgoals(cfg: SubgoalsConfig) -> Path:
         f"trial(s) = {len(plan)} trials; {len(plan) - len(todo)} already done",
         flush=True,
     )
-    root.mkdir(parents=True, exist_ok=True)
-    (root / MANIFEST).write_text(json.dumps(manifest, indent=2))
     frames = [rows] if len(rows) else []
     bar = tqdm(
         total=len(plan), initial=len(plan) - len(todo), unit="trial", desc="subgoals",
         disable=not cfg.progress or cfg.robot is not None,
     )  # fmt: skip
 
+    written = []
+
     def on_rows(new: list[dict]) -> None:
+        # The manifest is written with the first scored trial: a run refused or failed before it leaves the
+        # directory as it was, so the corrected rerun is not held to this run's settings.
+        if not written:
+            root.mkdir(parents=True, exist_ok=True)
+            (root / MANIFEST).write_text(json.dumps(manifest, indent=2))
+            written.append(True)
         frames.append(pd.DataFrame(new, columns=list(TABLE_COLUMNS)))
         write_table(pd.concat(frames, ignore_index=True), root / RESULTS, metadata=manifest)
         bar.update(len(new))

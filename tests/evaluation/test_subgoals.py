@@ -188,6 +188,7 @@ def test_the_cue_highlights_the_destination_and_no_cue_shows_the_same_frame_unma
             "96x128, wrist 96x128; set that size with --env.observation_height/--env.observation_width",
         ),
         (["--policy.path=FRONT"], "reads cameras front 64x80, but InstrumentRouting-v0 (rendering both at one size) gives top 64x80, wrist 64x80"),
+        (["--policy.path=PROMPTED"], "reads prompt crops (act_modified with use_prompts), which InstrumentRouting-v0 does not give"),
         (["--policy.path=PLAIN", "--condition=cue"], "has no enabled condground_rgb_cue step; evaluate it with --condition=explicit"),
         (["--robot.type=ur3e", "--robot.host=127.0.0.1", "--condition=cue"], "--condition=cue cannot run on the real arm"),
         (["--robot.type=ur3e", "--robot.backend=sim"], "--robot.backend=sim drives the pick-and-place twin"),
@@ -204,6 +205,11 @@ def test_bad_input_is_one_clear_error_before_any_work(args, message, checkpoints
             tmp_path / "front", policy_type="act", height=HEIGHT, width=WIDTH, cameras=("front",)
         )
         args = [f"--policy.path={front}", "--condition=explicit"]
+    if "--policy.path=PROMPTED" in args:
+        prompted = make_checkpoint(
+            tmp_path / "prompted", height=HEIGHT, width=WIDTH, cameras=("top", "wrist")
+        )
+        args = [f"--policy.path={prompted}", "--condition=explicit"]
     args = [a.replace("PLAIN", str(checkpoints["plain"])) for a in args]
     defaults = [
         f"--policy.path={checkpoints['cue']}",
@@ -212,10 +218,10 @@ def test_bad_input_is_one_clear_error_before_any_work(args, message, checkpoints
         f"--output_dir={tmp_path / 'out'}",
     ]
     assert main(["subgoals", *defaults, *args]) == 2
-    line = next(
+    lines = [
         line for line in capsys.readouterr().err.splitlines() if line.startswith("condground subgoals: ")
-    )
-    assert message in line, line
+    ]
+    assert len(lines) == 1 and message in lines[0], lines
     assert not (tmp_path / "out").exists()
 
 
