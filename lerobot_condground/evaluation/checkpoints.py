@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -220,6 +221,7 @@ def describe_checkpoint(
         )
     if not trust_remote_code:
         check_policy_type(config_file, policy_type)
+    check_config_fields(config_file, config, policy_type, known)
     check_processor_steps(path, trust_remote_code)
     check_weights(path)
     variant = config.get("variant", "") if policy_type == "act_modified" else ""
@@ -249,6 +251,31 @@ def describe_checkpoint(
         needs_prompts=bool(config.get("use_prompts")),
         trust_remote_code=trust_remote_code,
     )
+
+
+def check_config_fields(config_file: Path, config: dict, policy_type: str, known: list[str]) -> None:
+    """Every field of config.json must be one its type's config has: a `type` edited to another policy would
+    otherwise fail in draccus with every foreign field listed and no file named."""
+    from dataclasses import fields
+
+    from lerobot.configs.policies import PreTrainedConfig
+
+    def names(kind: str) -> set[str]:
+        return {f.name for f in fields(PreTrainedConfig.get_choice_class(kind))}
+
+    given = set(config) - {"type"}
+    unknown = sorted(given - names(policy_type))
+    if unknown:
+        fits = [kind for kind in known if kind != policy_type and given <= names(kind)]
+        raise ValueError(
+            f"Policy config {config_file} names type {policy_type!r}, which has no field "
+            f"{', '.join(unknown[:3])}{', ...' if len(unknown) > 3 else ''} ({len(unknown)} of its fields); "
+            + (
+                f"its fields are those of {' or '.join(fits)}"
+                if fits
+                else "allowed: the config its training wrote"
+            )
+        )
 
 
 def check_env_fits(loaded: LoadedPolicy, env_cfg) -> None:
@@ -322,11 +349,22 @@ def load_policy(
     policy = make_policy(cfg=cfg, env_cfg=env_cfg)
     policy.eval()
     loaded.policy = policy
-    loaded.preprocessor, loaded.postprocessor = make_pre_post_processors(
-        policy_cfg=cfg,
-        pretrained_path=loaded.local,
-        preprocessor_overrides={"device_processor": {"device": device}},
-    )
+    try:
+        loaded.preprocessor, loaded.postprocessor = make_pre_post_processors(
+            policy_cfg=cfg,
+            pretrained_path=loaded.local,
+            preprocessor_overrides={"device_processor": {"device": device}},
+        )
+    except (ValueError, TypeError, KeyError) as err:
+        # LeRobot names the step and its config but not the file: the files holding that step are named.
+        named = re.findall(r"'([\w.]+)'", str(err))[:1]
+        files = [
+            name for name in ("policy_preprocessor.json", "policy_postprocessor.json")
+            if named and f'"{named[0]}"' in (Path(loaded.local) / name).read_text(errors="replace")
+        ] or ["policy_preprocessor.json", "policy_postprocessor.json"]  # fmt: skip
+        raise ValueError(
+            f"{' or '.join(str(Path(loaded.local) / f) for f in files)} does not build: {' '.join(str(err).split())}"
+        ) from None
     loaded.env_preprocessor, loaded.env_postprocessor = make_env_pre_post_processors(
         env_cfg=env_cfg, policy_cfg=cfg
     )

@@ -222,10 +222,14 @@ def run_sweep(cfg: SweepConfig) -> Path:
         check_env_fits(loaded, EnvSpec.for_checkpoint(cfg.env, loaded, "clean").lerobot_config())
     root = Path(cfg.output_dir)
     manifest = make_manifest(cfg, conditions, checkpoints)
-    write = check_same_sweep(root, manifest)
-    root.mkdir(parents=True, exist_ok=True)
-    if write:
-        (root / MANIFEST).write_text(json.dumps(manifest, indent=2))
+    # Written with the first finished part (or at the end): a sweep whose checkpoints fail to build leaves
+    # no manifest to hold the corrected rerun to its settings.
+    unwritten = [manifest] if check_same_sweep(root, manifest) else []
+
+    def write_manifest() -> None:
+        if unwritten:
+            root.mkdir(parents=True, exist_ok=True)
+            (root / MANIFEST).write_text(json.dumps(unwritten.pop(), indent=2))
 
     units = plan_units(cfg, conditions, len(checkpoints))
     expected = {u.part_path(root, checkpoints[u.checkpoint].hash): u for u in units}
@@ -265,6 +269,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     started = time.perf_counter()
 
     def on_done(job: dict, rows: list[dict]) -> None:
+        write_manifest()
         path = job["unit"].part_path(root, checkpoints[job["unit"].checkpoint].hash)
         write_table(rows, path)
         frames[path] = read_table(path)
@@ -278,6 +283,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
         execute(jobs, cfg.launcher, workers, threads, cfg.ray_address, on_done)
     finally:
         bar.close()
+    write_manifest()
     elapsed = time.perf_counter() - started
     import pandas as pd
 

@@ -131,7 +131,20 @@ def test_what_would_fail_inside_a_worker_fails_before_the_sweep_starts(tmp_path,
     shutil.copytree(act_checkpoint, unknown)
     config = json.loads((unknown / "config.json").read_text())
     (unknown / "config.json").write_text(json.dumps({**config, "type": "act_plus_plus"}))
+    retyped = tmp_path / "retyped"  # a type edited to another registered policy
+    shutil.copytree(act_checkpoint, retyped)
+    (retyped / "config.json").write_text(json.dumps({**config, "type": "diffusion"}))
+    broken = with_step(
+        act_checkpoint, tmp_path / "broken", {"registry_name": "normalizer_processor", "config": {}}
+    )
     for ckpt, extra, fragment in (
+        (retyped, [], f"Policy config {retyped / 'config.json'} names type 'diffusion', which has no field"),
+        (retyped, [], "its fields are those of act"),
+        (
+            broken,
+            ["--eval.n_episodes=1"],
+            f"{broken / PREPROCESSOR} does not build: Failed to instantiate processor step 'normalizer_processor'",
+        ),
         (weights, [], f"Weights file {weights / 'model.safetensors'} is damaged or incomplete"),
         (
             unknown,
