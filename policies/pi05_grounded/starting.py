@@ -22,7 +22,7 @@ from pathlib import Path
 
 import draccus
 import torch
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 
 from lerobot_condground.core.trust import check_name, pinned_folder
 
@@ -76,12 +76,16 @@ def take_dataset_features(config: PI05GroundedConfig, dataset_features: dict) ->
 
 def check_weights(config: PI05GroundedConfig, weights: Path) -> None:
     """Raises unless every tensor of `weights` loads strictly into a policy of `config`."""
+    try:
+        with safe_open(str(weights), "pt", device="cpu") as f:
+            state = {k: torch.empty(f.get_slice(k).get_shape(), device="meta") for k in f.keys()}  # noqa: SIM118
+    except (SafetensorError, OSError) as err:
+        # A damaged or crafted header (e.g. a length of 2^62 bytes) is the file's fault: name it.
+        raise ValueError(f"{weights} is not a readable safetensors file ({err})") from None
     on_meta = copy.deepcopy(config)
     on_meta.device = "meta"
     with torch.device("meta"):
         policy = PI05GroundedPolicy(on_meta)
-    with safe_open(str(weights), "pt", device="cpu") as f:
-        state = {k: torch.empty(f.get_slice(k).get_shape(), device="meta") for k in f.keys()}  # noqa: SIM118
     problem = policy.weights_mismatch(policy.prepared_state(state))
     if problem:
         raise ValueError(f"{weights} does not fit pi05_grounded with this configuration: {problem}")

@@ -556,3 +556,13 @@ def test_pi05_bench_times_every_setting(capsys):
     assert results["select_action_s"] > 0
     assert main(["pi05-bench", "--batch_sizes=[8,0]"]) == 2
     assert "--batch_sizes=[8, 0] is not allowed" in capsys.readouterr().err
+
+
+def test_pi05_start_names_a_weights_file_with_a_crafted_header(tokenizer, tmp_path):
+    """A header claiming 2^62 bytes is refused in one line naming the file, before any policy is built."""
+    from lerobot_condground.policies.pi05_grounded.starting import check_weights
+
+    weights = tmp_path / "model.safetensors"
+    weights.write_bytes((2**62).to_bytes(8, "little") + b"{}")
+    with pytest.raises(ValueError, match=f"{weights} is not a readable safetensors file"):
+        check_weights(make_config(tokenizer), weights)
