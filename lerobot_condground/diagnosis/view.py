@@ -59,6 +59,10 @@ class ViewConfig:
     progress: bool = True
 
 
+# The first bytes of every .rrd file rerun writes.
+RRD_MAGIC = b"RRF2"
+
+
 def _start(name: str, output: str | None, blueprint=None):
     import rerun as rr
 
@@ -207,6 +211,11 @@ def view_attention(cfg: ViewConfig) -> None:
     rr.disconnect()
 
 
+def _is_recording(path: Path) -> bool:
+    with path.open("rb") as f:
+        return f.read(4) == RRD_MAGIC
+
+
 def run_view(cfg: ViewConfig) -> None:
     if cfg.output is not None:
         output = Path(cfg.output)
@@ -215,6 +224,12 @@ def run_view(cfg: ViewConfig) -> None:
         clash = next((p for p in output.parents if p.exists() and not p.is_dir()), None)
         if clash is not None:
             raise ValueError(f"--output={cfg.output!r}: {clash} is a file, not a folder")
+        if output.exists() and not _is_recording(output):
+            # A rerun recording (an earlier view's) is replaced; anything else there is the user's.
+            raise ValueError(
+                f"--output={cfg.output!r} exists and is not a rerun recording; allowed: a new file name, or a "
+                ".rrd file an earlier view wrote"
+            )
     if cfg.attention_dir is not None:
         view_attention(cfg)
     else:

@@ -52,6 +52,13 @@ def test_condground_view_logs_the_label_layers(recorded_dataset, tmp_path):
     assert found["/labels/phase"] == {"Scalars"}
     assert found["/prompts/object"] == found["/prompts/receptacle"] == {"Image"}
     assert {"/state/gripper.pos", "/action/shoulder_pan.pos"} <= set(found)
+    # Its own recording is replaced by the next view into the same file.
+    size = rrd.stat().st_size
+    run_cli(
+        "condground", "view", f"--dataset.repo_id={REPO}", f"--dataset.root={recorded_dataset}",
+        "--episode=0", f"--output={rrd}", "--progress=false",
+    )  # fmt: skip
+    assert rrd.stat().st_size != size and "/cameras/top" in entities(rrd, tmp_path)
 
 
 def test_condground_view_of_an_attention_run(tiny_checkpoints, tmp_path):
@@ -102,10 +109,13 @@ def test_view_refuses_an_output_it_cannot_write_in_one_line(tmp_path, capsys):
 
     (tmp_path / "folder.rrd").mkdir()
     (tmp_path / "afile").write_text("the user's")
+    (tmp_path / "notes.rrd").write_text("the user's too")
     for output, fragment in (
         (tmp_path / "folder.rrd", "allowed: a file name ending in .rrd"),
         (tmp_path / "afile" / "x.rrd", "afile is a file, not a folder"),
+        (tmp_path / "notes.rrd", "exists and is not a rerun recording; allowed: a new file name"),
     ):
         assert main(["view", f"--attention_dir={tmp_path}", f"--output={output}"]) == 2
         assert fragment in capsys.readouterr().err
     assert (tmp_path / "afile").read_text() == "the user's"
+    assert (tmp_path / "notes.rrd").read_text() == "the user's too"
