@@ -78,6 +78,30 @@ def _source(root: Path, index: int) -> tuple[dict, list[dict]]:
     return entry, episodes
 
 
+def _check_alike(roots: list[Path]) -> None:
+    """fps and features must agree: named here by source and feature, where LeRobot's own check prints both
+    feature tables whole."""
+    infos = [read_json_object(root / "meta" / "info.json", "Dataset info") for root in roots]
+    first = infos[0]
+    for index, info in enumerate(infos[1:], start=1):
+        flag = f"--roots[{index}]={roots[index]}"
+        if info.get("fps") != first.get("fps"):
+            raise ValueError(
+                f"{flag} runs at {info.get('fps')} fps, --roots[0] at {first.get('fps')}; allowed: one fps"
+            )
+        ours, theirs = first.get("features") or {}, info.get("features") or {}
+        only = sorted(set(ours) ^ set(theirs))
+        differ = sorted(k for k in set(ours) & set(theirs) if ours[k].get("shape") != theirs[k].get("shape")
+                        or ours[k].get("dtype") != theirs[k].get("dtype"))  # fmt: skip
+        if only or differ:
+            parts = [f"{k} only in {'--roots[0]' if k in ours else flag.split('=')[0]}" for k in only]
+            parts += [f"{k} of another shape or type" for k in differ]
+            raise ValueError(
+                f"{flag} and --roots[0] have other features ({'; '.join(parts)}); allowed: recordings made alike "
+                "(same cameras and sizes, labels on or off in all)"
+            )
+
+
 def merge_datasets(cfg: MergeConfig) -> dict:
     """Writes the merged dataset and its provenance; returns counts for the summary."""
     from lerobot.datasets.aggregate import aggregate_datasets
@@ -97,13 +121,28 @@ def merge_datasets(cfg: MergeConfig) -> dict:
             "(the merge is always written fresh)"
         )
     roots = [DatasetRefConfig(root=root).path() for root in cfg.roots]
-    if out_root.resolve() in {root.resolve() for root in roots}:
-        raise ValueError(f"--output.root={out_root} is one of the --roots; allowed: another path")
+    resolved = [root.resolve() for root in roots]
+    for index, root in enumerate(resolved):
+        if root in resolved[:index]:
+            raise ValueError(
+                f"--roots[{index}]={roots[index]} is --roots[{resolved.index(root)}] again: its episodes would be "
+                "merged twice; allowed: each dataset once"
+            )
+        if (
+            out_root.resolve() == root
+            or out_root.resolve().is_relative_to(root)
+            or root.is_relative_to(out_root.resolve())
+        ):
+            raise ValueError(
+                f"--output.root={out_root} overlaps --roots[{index}]={roots[index]}; allowed: a path outside every "
+                "source (a dataset's folder is its own)"
+            )
     sources, episodes = [], []
     for index, root in enumerate(roots):
         entry, records = _source(root, index)
         sources.append(entry)
         episodes += [{**record, "source": index} for record in records]
+    _check_alike(roots)
     partial = partial_beside(out_root)
     out_root.parent.mkdir(parents=True, exist_ok=True)
     try:

@@ -70,6 +70,14 @@ def test_refuses_bad_input(recorded_dataset, tmp_path, capsys):
     assert "--output.video=false" in capsys.readouterr().err
     assert "--roots[1]=" in merge(recorded_dataset, tmp_path / "missing")
     assert "already exists" in merge(recorded_dataset, recorded_dataset, output=recorded_dataset)
+    assert "is --roots[0] again: its episodes would be merged twice" in merge(
+        recorded_dataset, recorded_dataset
+    )
+    inside = recorded_dataset / "merged"
+    assert f"--output.root={inside} overlaps --roots[0]" in merge(
+        recorded_dataset, tmp_path / "missing", output=inside
+    )
+    assert not inside.exists()
     # A recording whose provenance does not list every episode: the merged list would misplace them.
     short = tmp_path / "short"
     shutil.copytree(recorded_dataset, short)
@@ -77,14 +85,23 @@ def test_refuses_bad_input(recorded_dataset, tmp_path, capsys):
     record["episodes"] = record["episodes"][:1]
     (short / RECORD_FILE).write_text(json.dumps(record))
     assert "lists 1 episodes, its meta/info.json 2" in merge(recorded_dataset, short)
-    # LeRobot's own check that the datasets agree (here the fps), as one line.
-    other = tmp_path / "other_fps"
-    ds = LeRobotDataset.create(
-        "local/other", fps=10, root=other, use_videos=False,
-        features={"action": {"dtype": "float32", "shape": (1,), "names": ["a"]}},
-    )  # fmt: skip
-    ds.add_frame({"action": np.zeros(1, np.float32), "task": "t"})
-    ds.save_episode()
-    ds.finalize()
-    assert "fps" in merge(recorded_dataset, other)
+    # fps and features must agree: named by source and feature (not LeRobot's two whole feature tables).
+    for fps in (10, 20):
+        other = tmp_path / f"other_{fps}"
+        ds = LeRobotDataset.create(
+            "local/other", fps=fps, root=other, use_videos=False,
+            features={"action": {"dtype": "float32", "shape": (1,), "names": ["a"]}},
+        )  # fmt: skip
+        ds.add_frame({"action": np.zeros(1, np.float32), "task": "t"})
+        ds.save_episode()
+        ds.finalize()
+    assert f"--roots[1]={tmp_path / 'other_10'} runs at 10 fps, --roots[0] at 20" in merge(
+        recorded_dataset, tmp_path / "other_10"
+    )
+    err = merge(recorded_dataset, tmp_path / "other_20")
+    assert (
+        "have other features (action of another shape or type; observation.images.top only in --roots[0]"
+        in err
+    )
+    assert len(err.strip().splitlines()[-1]) < 1000
     assert not out.exists() and not (tmp_path / ".out.partial").exists()
