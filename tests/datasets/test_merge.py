@@ -99,9 +99,7 @@ def test_refuses_bad_input(recorded_dataset, tmp_path, capsys):
         recorded_dataset, tmp_path / "other_10"
     )
     err = merge(recorded_dataset, tmp_path / "other_20")
-    assert (
-        "have other features (action of another shape or type; observation.images.top only in --roots[0]"
-        in err
-    )
+    assert "have other features (observation.images.top only in --roots[0]" in err
+    assert "action of another shape or type)" in err
     assert len(err.strip().splitlines()[-1]) < 1000
     assert not out.exists() and not (tmp_path / ".out.partial").exists()
