@@ -103,6 +103,8 @@ class TakeoverConfig:
     min_steps: int = 0
     max_steps: int = 150
     device: str = "cpu"
+    # The checkpoint's processor files may name classes outside LeRobot's registry; they load only if true.
+    trust_remote_code: bool = False
 
 
 # Far beyond any study here, well below what fills a disk unnoticed.

@@ -366,3 +366,28 @@ def test_training_frames_are_the_renders_evaluation_sees(recorded_dataset):
             obs, *_ = env.step(item["action"].numpy())
         psnr = 10 * np.log10(255**2 / np.array(errors))
         assert 10 * np.log10(255**2 / np.mean(errors)) >= 32 and psnr.min() >= 30, (ep, psnr.min())
+
+
+def test_a_takeover_checkpoint_is_untrusted_input(tmp_path, tiny_checkpoints, capsys):
+    """--takeover.policy_path loads a checkpoint: one naming arbitrary code is refused before anything runs,
+    with this command's own opt-in named; a missing one is named; nothing is written either way."""
+    from lerobot_condground.cli import main
+
+    evil = tmp_path / "evil"
+    shutil.copytree(tiny_checkpoints[0], evil)
+    pipeline = json.loads((evil / "policy_preprocessor.json").read_text())
+    marker = tmp_path / "pwned"
+    pipeline["steps"].insert(0, {"class": "subprocess.Popen", "config": {"args": ["touch", str(marker)]}})
+    (evil / "policy_preprocessor.json").write_text(json.dumps(pipeline))
+    root = tmp_path / "ds"
+    flags = ["--env.task=PickPlaceFixedBin-v0", "--dataset.repo_id=local/t", f"--dataset.root={root}",
+             "--env.observation_height=96", "--env.observation_width=128", "--progress=false"]  # fmt: skip
+    for path, fragment in (
+        (evil, "names class 'subprocess.Popen'"),
+        (evil, "pass --takeover.trust_remote_code=true if you trust"),
+        (tmp_path / "absent", f"Policy path '{tmp_path / 'absent'}' is not a checkpoint directory"),
+    ):
+        assert main(["record", *flags, f"--takeover.policy_path={path}"]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("condground record:")]
+        assert len(err) == 1 and fragment in err[0], err
+    assert not marker.exists() and not root.exists()
