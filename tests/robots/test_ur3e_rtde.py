@@ -68,6 +68,12 @@ def test_receive_path_reads_joints_gripper_and_keeps_other_threads_running(fake)
         assert robot.get_observation()["shoulder_pan.pos"] == pytest.approx(0.5)
         assert max(np.diff(ticks)) < 0.2  # the heartbeat never stalled while the arm connected
         assert fake.state()["gripper"]["ACT"] == 0  # dry run: the gripper was read, not activated
+        # ur_rtde raises the thread that builds an RTDE interface: that happens in the worker process alone,
+        # so this process, and what it launches, stay at normal priority (issue 56).
+        if hasattr(os, "sched_getscheduler"):
+            assert os.sched_getscheduler(0) == os.SCHED_OTHER
+            child = [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"]
+            assert subprocess.run(child, check=True, capture_output=True, text=True).stdout.strip() == "0"
     finally:
         robot.disconnect()
     assert not robot.is_connected
