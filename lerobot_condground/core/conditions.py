@@ -117,3 +117,11 @@ def check_env_task(task: str) -> str:
     if task not in ENV_TASKS:
         raise ValueError(f"Unknown task {task!r}; allowed: {', '.join(ENV_TASKS)}")
     return task
+
+
+def check_condition(condition: str, flag: str) -> str:
+    """A condition's name as a command's flag gives it (a name or a spec), or one error naming the flag."""
+    try:
+        return ConditionSpec.parse(condition).name
+    except ValueError as err:
+        raise ValueError(f"{flag}={condition!r}: {err}") from None

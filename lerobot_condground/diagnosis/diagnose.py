@@ -37,9 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_condground.core import paper
+from lerobot_condground.core.conditions import check_condition
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig, check_seed
 from lerobot_condground.core.provenance import command_line, versions
-from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, check_condition, load_act_family
+from lerobot_condground.diagnosis.hooks import ACTProbe, acting_model, load_act_family
 
 logger = logging.getLogger(__name__)
 

@@ -251,7 +251,7 @@ def run_failures(cfg: FailuresConfig) -> Path:
     import pandas as pd
     from tqdm import tqdm
 
-    from lerobot_condground.diagnosis.hooks import check_condition
+    from lerobot_condground.core.conditions import check_condition
     from lerobot_condground.evaluation.checkpoints import describe_checkpoint, load_policy, resolve_device
     from lerobot_condground.evaluation.rollout import EnvPool, EnvSpec, run_episodes
     from lerobot_condground.evaluation.units import EPISODES_PER_SEED_LIMIT, layout_seed

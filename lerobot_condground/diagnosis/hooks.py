@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_condground.core.conditions import ConditionSpec, check_task
+from lerobot_condground.core.conditions import check_condition, check_task
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
 from lerobot_condground.evaluation.checkpoints import (
     CAMERA_PREFIX,
@@ -38,13 +38,6 @@ def check_act_family(loaded) -> None:
             f"Checkpoint {loaded.path!r} is a {loaded.policy_type!r} policy; this diagnosis needs an ACT-family "
             f"checkpoint (policy types: {', '.join(act_types)})"
         )
-
-
-def check_condition(condition: str, flag: str) -> str:
-    try:
-        return ConditionSpec.parse(condition).name
-    except ValueError as err:
-        raise ValueError(f"{flag}={condition!r}: {err}") from None
 
 
 def env_spec_for(env: EvalEnvConfig, loaded, condition: str | None = None) -> EnvSpec:
