@@ -99,3 +99,24 @@ def make_checkpoint(
         part.save_pretrained(path)
     (path / "train_config.json").write_text(json.dumps({"seed": seed}))
     return path
+
+
+def garbage_checkpoints(source: Path, root: Path) -> dict[Path, str]:
+    """Copies of a checkpoint damaged as a bad copy or a hand edit leaves them, with the line each must give."""
+    import shutil
+
+    cases = {}
+    for name, edit, message in (
+        ("model.safetensors", lambda b: b[: len(b) // 2], "model.safetensors is damaged or incomplete"),
+        ("config.json", lambda b: b"{not json", "config.json is not valid JSON"),
+        (
+            "policy_preprocessor.json",
+            lambda b: b'{"steps": 3}',
+            "policy_preprocessor.json has no list of steps",
+        ),
+    ):
+        ckpt = root / f"garbage_{name.split('.')[0]}"
+        shutil.copytree(source, ckpt)
+        (ckpt / name).write_bytes(edit((ckpt / name).read_bytes()))
+        cases[ckpt] = message
+    return cases

@@ -12,8 +12,13 @@ from pathlib import Path
 
 def read_json_object(path: Path, what: str) -> dict:
     """The JSON object in `path`; `what` says in the error which file it was meant to be."""
+    return parse_json_object(Path(path).read_bytes(), path, what)
+
+
+def parse_json_object(text: bytes, path: Path, what: str) -> dict:
+    """The JSON object in `text`, the bytes read from `path`."""
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(text)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ValueError(
             f"{what} {path} is not valid JSON ({err}); it is damaged or was not written by LeRobot or condground"

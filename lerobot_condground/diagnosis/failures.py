@@ -274,13 +274,7 @@ def run_failures(cfg: FailuresConfig) -> Path:
     if described.is_expert:
         raise ValueError("--policy.path=expert: the scripted expert does not fail; give a checkpoint")
     spec = EnvSpec.for_checkpoint(cfg.env, described, condition)
-    loaded = load_policy(
-        path,
-        spec.lerobot_config(),
-        resolve_device(cfg.policy.device),
-        cfg.policy.label,
-        trust_remote_code=cfg.policy.trust_remote_code,
-    )
+    loaded = load_policy(described, spec.lerobot_config(), resolve_device(cfg.policy.device))
     # act_modified's phase predictor (of its moving average when it keeps one: the weights that act).
     phase_head = getattr(getattr(loaded.policy, "acting_model", None), "phase_head", None)
     out = Path(cfg.output_dir)

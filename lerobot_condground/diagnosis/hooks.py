@@ -63,13 +63,7 @@ def load_act_family(policy: PolicyRefConfig, env: EvalEnvConfig, condition: str 
     described = describe_checkpoint(path, policy.label, trust_remote_code=policy.trust_remote_code)
     check_act_family(described)
     spec = env_spec_for(env, described, condition)
-    loaded = load_policy(
-        path,
-        spec.lerobot_config(),
-        resolve_device(policy.device),
-        policy.label,
-        trust_remote_code=policy.trust_remote_code,
-    )
+    loaded = load_policy(described, spec.lerobot_config(), resolve_device(policy.device))
     return loaded, spec
 
 

@@ -7,20 +7,27 @@ expert, the oracle every table can show beside the policies.
 
 from __future__ import annotations
 
+import atexit
+import dataclasses
 import functools
 import hashlib
+import json
+import os
 import re
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lerobot_condground.core.files import read_json_object
+from lerobot_condground.core.files import parse_json_object
 from lerobot_condground.core.trust import (
     OPT_IN,
     check_policy_type,
     check_state_file,
     check_step,
     pinned_folder,
+    within,
 )
 
 EXPERT = "expert"
@@ -35,7 +42,7 @@ class LoadedPolicy:
     variant: str
     hash: str
     training_seed: int | None
-    local: str = ""  # the folder its files are read from (a hub id's pinned snapshot)
+    read: CheckpointRead | None = None  # None for the expert
     cameras: dict[str, tuple[int, int]] = field(default_factory=dict)  # name -> (height, width)
     vectors: dict[str, tuple[int, ...]] = field(default_factory=dict)  # state and action shapes
     needs_prompts: bool = False
@@ -45,6 +52,11 @@ class LoadedPolicy:
     postprocessor: Any = None
     env_preprocessor: Any = None
     env_postprocessor: Any = None
+
+    @property
+    def local(self) -> str:
+        """The folder LeRobot's loaders read: the private copy of what was checked."""
+        return str(self.read.copy) if self.read else ""
 
     @property
     def is_expert(self) -> bool:
@@ -80,36 +92,137 @@ def local_checkpoint(path: str) -> Path:
         raise FileNotFoundError(f"Policy path {err}; or use `{EXPERT}` for the scripted expert") from None
 
 
-def checkpoint_file(path: str, name: str) -> Path | None:
-    """A file of a checkpoint directory or hub repo; None if the checkpoint has no such file."""
-    file = local_checkpoint(path) / name
-    return file if file.is_file() else None
-
-
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+WEIGHTS = "model.safetensors"
 
 
-def processor_steps(path: str) -> list[tuple[Path, int, dict]]:
-    """Every step of the checkpoint's processor pipelines, with the file that lists it and its index there."""
-    steps = []
+@dataclass(frozen=True)
+class CheckpointRead:
+    """A checkpoint as read, every file once: what the trust checks judge, what the hash covers and what the
+    loader builds. The loader reads `copy`, a private folder holding exactly the bytes read here (the weights
+    copied as they were hashed), never the checkpoint's own folder, which may change after the checks."""
+
+    source: str
+    folder: Path  # where the files were read (a hub id's pinned snapshot)
+    copy: Path
+    config: dict
+    # Every step of the processor pipelines: (file name, index in its file, step).
+    steps: tuple[tuple[str, int, dict], ...]
+    training_seed: int | None
+    hash: str  # sha256 (16 hex digits) of config, weights, processor files and their state files
+
+
+_COPIES: list[Path] = []
+
+
+def _remove_copies(pid: int) -> None:
+    if os.getpid() == pid:  # not in a forked child, whose parent may still load from them
+        for copy in _COPIES:
+            shutil.rmtree(copy, ignore_errors=True)
+
+
+def private_copy() -> Path:
+    """A folder of this process's own, removed when it exits."""
+    if not _COPIES:
+        atexit.register(_remove_copies, os.getpid())
+    _COPIES.append(Path(tempfile.mkdtemp(prefix="condground-checkpoint-")))
+    return _COPIES[-1]
+
+
+def read_checkpoint(source: str) -> CheckpointRead:
+    """Reads a checkpoint once: config, processor files, their state files (never from outside the folder),
+    the training seed, and the weights, copied into a private folder while hashed and then checked whole.
+
+    A changed normalization or processor step is a different checkpoint: the hash covers every file that
+    decides behaviour, in the order config, weights, processor files, state files (sorted)."""
+    folder = local_checkpoint(source)
+    if not (folder / "config.json").is_file():
+        raise FileNotFoundError(
+            f"Policy path {source!r} is neither a checkpoint directory with config.json nor a cached hub id "
+            f"(or `{EXPERT}` for the scripted expert)"
+        )
+    copy = private_copy()
+
+    def take(name: str) -> bytes:
+        if not within(folder, Path(name)):
+            raise PermissionError(
+                f"{folder / name} links outside the checkpoint's folder {folder}; allowed: a file inside it"
+            )
+        data = (folder / name).read_bytes()
+        (copy / name).parent.mkdir(parents=True, exist_ok=True)
+        (copy / name).write_bytes(data)
+        return data
+
+    digest = hashlib.sha256()
+
+    def hashed(name: str, data: bytes) -> None:
+        digest.update(name.encode() + b"\0" + data)
+
+    config = take("config.json")
+    parsed = parse_json_object(config, folder / "config.json", "Policy config")
+    hashed("config.json", config)
+    copy_weights(folder, copy, digest)
+    steps, state_files = [], set()
     for name in PROCESSOR_FILES:
-        file = checkpoint_file(path, name)
-        if file is None:
+        if not (folder / name).is_file():
             continue
-        listed = read_json_object(file, "Processor file").get("steps")
+        data = take(name)
+        listed = parse_json_object(data, folder / name, "Processor file").get("steps")
         if not isinstance(listed, list) or not all(isinstance(step, dict) for step in listed):
-            raise ValueError(f"Processor file {file} has no list of steps; the checkpoint is damaged")
-        steps += [(file, index, step) for index, step in enumerate(listed)]
-    return steps
+            raise ValueError(
+                f"Processor file {folder / name} has no list of steps; the checkpoint is damaged"
+            )
+        hashed(name, data)
+        for index, step in enumerate(listed):
+            check_state_file(folder / name, index, step)
+            if isinstance(step.get("state_file"), str):
+                state_files.add(step["state_file"])
+        steps += [(name, index, step) for index, step in enumerate(listed)]
+    for name in sorted(state_files):
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"Checkpoint {source!r} has no {name}, which its processor files name")
+        hashed(name, take(name))
+    seed = None
+    if (folder / "train_config.json").is_file():
+        train = parse_json_object(take("train_config.json"), folder / "train_config.json", "Training config")
+        seed = train.get("seed")
+    return CheckpointRead(source, folder, copy, parsed, tuple(steps), seed, digest.hexdigest()[:16])
 
 
-def check_processor_steps(path: str, trust_remote_code: bool) -> None:
-    """Refuses a checkpoint whose pipelines would load code, or read files outside its folder (trust.py).
+def copy_weights(folder: Path, copy: Path, digest) -> None:
+    """The weights into the private folder, hashed as they stream; a truncated download or copy is refused
+    here, not inside a worker."""
+    from safetensors import SafetensorError, safe_open
+
+    file = folder / WEIGHTS
+    if not file.is_file():
+        raise FileNotFoundError(f"Checkpoint {str(folder)!r} has no {WEIGHTS}")
+    if not within(folder, Path(WEIGHTS)):
+        raise PermissionError(
+            f"{file} links outside the checkpoint's folder {folder}; allowed: a file inside it"
+        )
+    digest.update(WEIGHTS.encode() + b"\0")
+    with open(file, "rb") as source, open(copy / WEIGHTS, "wb") as target:
+        for block in iter(lambda: source.read(1 << 20), b""):
+            digest.update(block)
+            target.write(block)
+    try:
+        with safe_open(copy / WEIGHTS, "pt") as weights:
+            weights.keys()
+    except SafetensorError as err:
+        raise ValueError(f"Weights file {file} is damaged or incomplete ({err})") from None
+
+
+def check_processor_steps(read: CheckpointRead, trust_remote_code: bool) -> None:
+    """Refuses a checkpoint whose pipelines would load code (trust.py); state files were kept inside its folder
+    as it was read.
 
     LeRobot's loader imports whatever dotted path a step's "class" names and calls it with the file's
     arguments, and some registered steps load further code their arguments name: only steps reviewed as
-    safe, with safe arguments, load unless the user opts in. State files must lie in the folder either way.
+    safe, with safe arguments, load unless the user opts in.
     """
+    if trust_remote_code:
+        return
     from lerobot.processor.pipeline import ProcessorStepRegistry
 
     register_plugins()
@@ -118,10 +231,8 @@ def check_processor_steps(path: str, trust_remote_code: bool) -> None:
         f"{cls.__module__}.{cls.__name__}": name
         for name, cls in ((name, ProcessorStepRegistry.get(name)) for name in registered)
     }
-    for file, index, step in processor_steps(path):
-        check_state_file(file, index, step)
-        if trust_remote_code:
-            continue
+    for file_name, index, step in read.steps:
+        file = read.folder / file_name
         name = step.get("registry_name") if "registry_name" in step else by_class.get(step.get("class"))
         if not isinstance(name, str) or name not in registered:
             named = (
@@ -137,46 +248,8 @@ def check_processor_steps(path: str, trust_remote_code: bool) -> None:
         check_step(file, index, step, name)
 
 
-def check_weights(path: str) -> None:
-    """The weights file is whole: a truncated download or copy fails here, not inside a worker."""
-    from safetensors import SafetensorError, safe_open
-
-    file = checkpoint_file(path, "model.safetensors")
-    if file is None:
-        raise FileNotFoundError(f"Checkpoint {path!r} has no model.safetensors")
-    try:
-        with safe_open(file, "pt") as weights:
-            weights.keys()
-    except SafetensorError as err:
-        raise ValueError(f"Weights file {file} is damaged or incomplete ({err})") from None
-
-
 def checkpoint_hash(path: str) -> str:
-    """sha256 (16 hex digits) of every file that decides behaviour: config, weights, processor pipelines and
-    their state files. A changed normalization or processor step is a different checkpoint."""
-    names = ["config.json", "model.safetensors"]
-    for name in PROCESSOR_FILES:
-        if checkpoint_file(path, name) is not None:
-            names.append(name)
-    names += sorted(
-        {
-            step["state_file"]
-            for _, _, step in processor_steps(path)
-            if isinstance(step.get("state_file"), str)
-        }
-    )
-    digest = hashlib.sha256()
-    for name in names:
-        file = checkpoint_file(path, name)
-        if file is None:
-            raise FileNotFoundError(
-                f"Checkpoint {path!r} has no {name}; expected a LeRobot pretrained_model directory or hub id"
-            )
-        digest.update(name.encode() + b"\0")
-        with open(file, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                digest.update(block)
-    return digest.hexdigest()[:16]
+    return read_checkpoint(path).hash
 
 
 @functools.cache
@@ -203,13 +276,8 @@ def describe_checkpoint(
             hash=EXPERT,
             training_seed=index,
         )
-    config_file = checkpoint_file(path, "config.json")
-    if config_file is None:
-        raise FileNotFoundError(
-            f"Policy path {path!r} is neither a checkpoint directory with config.json nor a cached hub id "
-            f"(or `{EXPERT}` for the scripted expert)"
-        )
-    config = read_json_object(config_file, "Policy config")
+    read = read_checkpoint(path)
+    config_file, config = read.folder / "config.json", read.config
     policy_type = config.get("type", "")
     from lerobot.configs.policies import PreTrainedConfig
 
@@ -222,8 +290,7 @@ def describe_checkpoint(
     if not trust_remote_code:
         check_policy_type(config_file, policy_type)
     check_config_fields(config_file, config, policy_type, known)
-    check_processor_steps(path, trust_remote_code)
-    check_weights(path)
+    check_processor_steps(read, trust_remote_code)
     variant = config.get("variant", "") if policy_type == "act_modified" else ""
     cameras = {
         key[len(CAMERA_PREFIX) :]: tuple(feature["shape"][-2:])
@@ -236,16 +303,14 @@ def describe_checkpoint(
         for key, feature in config.get(group, {}).items()
         if key in ("observation.state", "action")
     }
-    train_config = checkpoint_file(path, "train_config.json")
-    seed = read_json_object(train_config, "Training config").get("seed") if train_config else None
     return LoadedPolicy(
         path=path,
         label=label or (f"{policy_type}/{variant}" if variant else policy_type),
         policy_type=policy_type,
         variant=variant,
-        hash=checkpoint_hash(path),
-        local=str(local_checkpoint(path)),
-        training_seed=seed if seed is not None else index,
+        hash=read.hash,
+        read=read,
+        training_seed=read.training_seed if read.training_seed is not None else index,
         cameras=cameras,
         vectors=vectors,
         needs_prompts=bool(config.get("use_prompts")),
@@ -327,15 +392,19 @@ def resolve_device(device: str | None) -> str:
 
 
 def load_policy(
-    path: str,
+    checkpoint: str | LoadedPolicy,
     env_cfg,
     device: str = "cpu",
     label: str | None = None,
     index: int = 0,
     trust_remote_code: bool = False,
 ) -> LoadedPolicy:
-    """Builds the policy and its processors with LeRobot's own factories, as `lerobot-eval` does."""
-    loaded = describe_checkpoint(path, label, index, trust_remote_code)
+    """Builds the policy and its processors with LeRobot's own factories, as `lerobot-eval` does, from a
+    checkpoint described here (a path) or already (what `describe_checkpoint` judged is what loads)."""
+    if isinstance(checkpoint, LoadedPolicy):
+        loaded = dataclasses.replace(checkpoint)
+    else:
+        loaded = describe_checkpoint(checkpoint, label, index, trust_remote_code)
     if loaded.is_expert:
         return loaded
     check_env_fits(loaded, env_cfg)
@@ -357,13 +426,12 @@ def load_policy(
         )
     except (ValueError, TypeError, KeyError) as err:
         # LeRobot names the step and its config but not the file: the files holding that step are named.
-        named = re.findall(r"'([\w.]+)'", str(err))[:1]
-        files = [
-            name for name in ("policy_preprocessor.json", "policy_postprocessor.json")
-            if named and f'"{named[0]}"' in (Path(loaded.local) / name).read_text(errors="replace")
-        ] or ["policy_preprocessor.json", "policy_postprocessor.json"]  # fmt: skip
+        named = ["".join(m) for m in re.findall(r"'([\w.]+)'|\(([\w.]+)\)", str(err))][:1]
+        files = sorted(
+            {name for name, _, step in loaded.read.steps if named and named[0] in json.dumps(step)}
+        ) or list(PROCESSOR_FILES)
         raise ValueError(
-            f"{' or '.join(str(Path(loaded.local) / f) for f in files)} does not build: {' '.join(str(err).split())}"
+            f"{' or '.join(str(loaded.read.folder / f) for f in files)} does not build: {' '.join(str(err).split())}"
         ) from None
     loaded.env_preprocessor, loaded.env_postprocessor = make_env_pre_post_processors(
         env_cfg=env_cfg, policy_cfg=cfg

@@ -40,7 +40,6 @@ from lerobot_condground.evaluation.checkpoints import (
     LoadedPolicy,
     describe_checkpoint,
     load_policy,
-    processor_steps,
     resolve_device,
 )
 from lerobot_condground.evaluation.results import (
@@ -161,7 +160,7 @@ def cue_step(loaded: LoadedPolicy) -> dict | None:
     """The config of the checkpoint's enabled `condground_rgb_cue` step, or None."""
     if loaded.is_expert:
         return None
-    for _, _, step in processor_steps(loaded.path):
+    for _, _, step in loaded.read.steps:
         config = step.get("config") or {}
         if step.get("registry_name") == CUE_STEP and config.get("enabled", True):
             return config
@@ -460,9 +459,7 @@ def run_subgoals(cfg: SubgoalsConfig) -> Path:
 
     try:
         if todo:
-            loaded = load_policy(
-                loaded.path, spec.lerobot_config(), device, loaded.label, 0, loaded.trust_remote_code
-            )
+            loaded = load_policy(loaded, spec.lerobot_config(), device)
             if cfg.robot is None:
                 run_in_sim(cfg, loaded, spec, todo, on_rows)
             else:

@@ -78,10 +78,7 @@ def make_jobs(
         jobs.append(
             {
                 "unit": unit,
-                "path": loaded.local or loaded.path,  # a hub id's snapshot, as checked
-                "label": loaded.label,
-                "index": unit.checkpoint,
-                "trust_remote_code": loaded.trust_remote_code,
+                "checkpoint": loaded,  # as described and checked: its private copy loads
                 "device": device,
                 "env": EnvSpec.for_checkpoint(env, loaded, unit.condition),
                 "episodes": episodes,
@@ -113,16 +110,9 @@ def run_unit(job: dict) -> list[dict]:
     global _POOL
     _POOL = _POOL or EnvPool()
     spec: EnvSpec = job["env"]
-    key = (job["path"], job["device"], spec.observation_height, spec.observation_width)
+    key = (job["checkpoint"].local, job["device"], spec.observation_height, spec.observation_width)
     if key not in _POLICIES:
-        _POLICIES[key] = load_policy(
-            job["path"],
-            spec.lerobot_config(),
-            job["device"],
-            job["label"],
-            job["index"],
-            job["trust_remote_code"],
-        )
+        _POLICIES[key] = load_policy(job["checkpoint"], spec.lerobot_config(), job["device"])
     loaded = _POLICIES[key]
     envs = _POOL.get(spec, len(job["seeds"]))
     torch.manual_seed(job["seeds"][0])

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import read_json, run_cli
+from helpers import garbage_checkpoints, read_json, run_cli
 from lerobot_condground.diagnosis.failures import CAUSES, Tracer, cause, summarize
 from lerobot_condground.evaluation.checkpoints import describe_checkpoint
 from lerobot_condground.evaluation.rollout import EnvSpec, run_episodes
@@ -92,6 +92,11 @@ def test_bad_input_is_one_line(tiny_checkpoints, tmp_path, capsys):
         code = main(
             ["failures", f"--policy.path={tiny_checkpoints[0]}", flag, f"--output_dir={tmp_path / 'out'}"]
         )
+        err = capsys.readouterr().err
+        assert code == 2 and message in err.strip().splitlines()[-1], err
+        assert not (tmp_path / "out").exists()
+    for checkpoint, message in garbage_checkpoints(tiny_checkpoints[0], tmp_path).items():
+        code = main(["failures", f"--policy.path={checkpoint}", f"--output_dir={tmp_path / 'out'}"])
         err = capsys.readouterr().err
         assert code == 2 and message in err.strip().splitlines()[-1], err
         assert not (tmp_path / "out").exists()

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import make_checkpoint, read_json, run_cli
+from helpers import garbage_checkpoints, make_checkpoint, read_json, run_cli
 from lerobot_condground.core.ur3e import HOME_QPOS, forward_kinematics
 from lerobot_condground.diagnosis.fit import frame_errors, parse_episodes, segments
 
@@ -95,6 +95,13 @@ def test_bad_input_is_one_line(recorded_dataset, tmp_path, capsys):
         code = main(
             ["fit", f"--policy.path={checkpoint}", f"--dataset.root={recorded_dataset}", flag,
              f"--output_dir={tmp_path / 'out'}"]
+        )  # fmt: skip
+        err = capsys.readouterr().err
+        assert code == 2 and message in err.strip().splitlines()[-1], err
+        assert not (tmp_path / "out").exists()
+    for garbage, message in garbage_checkpoints(checkpoint, tmp_path).items():
+        code = main(
+            ["fit", f"--policy.path={garbage}", f"--dataset.root={recorded_dataset}", f"--output_dir={tmp_path / 'out'}"]
         )  # fmt: skip
         err = capsys.readouterr().err
         assert code == 2 and message in err.strip().splitlines()[-1], err

@@ -13,7 +13,7 @@ from lerobot.processor.pipeline import ProcessorStepRegistry
 from helpers import run_cli
 from lerobot_condground.cli import main
 from lerobot_condground.core.trust import DATA_STEPS, LOADING_STEPS, OPT_IN, REFUSED_STEPS, check_state_file
-from lerobot_condground.evaluation.checkpoints import check_processor_steps, register_plugins
+from lerobot_condground.evaluation.checkpoints import check_processor_steps, read_checkpoint, register_plugins
 
 PREPROCESSOR = "policy_preprocessor.json"
 
@@ -151,7 +151,7 @@ def test_what_the_gate_lets_through(act_checkpoint, tmp_path):
         tmp_path / "inside",
         {"registry_name": "tokenizer_processor", "config": {"tokenizer_name": "google/paligemma-3b-pt-224"}},
     )
-    check_processor_steps(str(inside), trust_remote_code=False)
+    check_processor_steps(read_checkpoint(str(inside)), trust_remote_code=False)
     folder = with_step(
         act_checkpoint,
         tmp_path / "folder",
@@ -163,14 +163,16 @@ def test_what_the_gate_lets_through(act_checkpoint, tmp_path):
             },
         },
     )
-    check_processor_steps(str(folder), trust_remote_code=False)
+    check_processor_steps(read_checkpoint(str(folder)), trust_remote_code=False)
     state = with_step(
         act_checkpoint,
         tmp_path / "state",
         {"registry_name": "normalizer_processor", "config": {}, "state_file": "/etc/passwd"},
     )
     with pytest.raises(PermissionError, match="state_file '/etc/passwd'"):
-        check_processor_steps(str(state), trust_remote_code=True)  # opting in to code never moves a read out
+        check_processor_steps(
+            read_checkpoint(str(state)), trust_remote_code=True
+        )  # opting in to code never moves a read out
 
 
 def test_an_unreviewed_registered_step_is_refused(act_checkpoint, tmp_path):
@@ -190,8 +192,8 @@ def test_an_unreviewed_registered_step_is_refused(act_checkpoint, tmp_path):
     try:
         ckpt = with_step(act_checkpoint, tmp_path / "ckpt", {"registry_name": "test_unreviewed_step"})
         with pytest.raises(PermissionError, match=r"step 0 \(test_unreviewed_step\) is not a step reviewed"):
-            check_processor_steps(str(ckpt), trust_remote_code=False)
-        check_processor_steps(str(ckpt), trust_remote_code=True)
+            check_processor_steps(read_checkpoint(str(ckpt)), trust_remote_code=False)
+        check_processor_steps(read_checkpoint(str(ckpt)), trust_remote_code=True)
     finally:
         ProcessorStepRegistry.unregister("test_unreviewed_step")
 

@@ -78,7 +78,9 @@ def test_a_checkpoint_naming_arbitrary_code_is_refused_before_anything_runs(tmp_
     # What the check prevents: opted in, LeRobot imports and calls the class (and rejects it, too late).
     loaded = describe_checkpoint(str(evil), trust_remote_code=True)
     spec = EnvSpec.for_checkpoint(EvalEnvConfig(task="PickPlaceFixedBin-v0"), loaded, "clean")
-    with pytest.raises(TypeError, match="must inherit from ProcessorStep"):
+    with pytest.raises(
+        ValueError, match=f"^{evil / PREPROCESSOR} does not build: .*must inherit from ProcessorStep"
+    ):
         load_policy(str(evil), spec.lerobot_config(), trust_remote_code=True)
     deadline = time.time() + 30
     while not marker.exists() and time.time() < deadline:
@@ -199,7 +201,8 @@ def test_a_hub_checkpoint_is_checked_and_loaded_from_one_snapshot(tmp_path, act_
     assert set(rows.checkpoint_hash) == {checkpoint_hash(str(act_checkpoint))}
 
     described = describe_checkpoint(repo_id)
-    assert Path(described.local) == good
+    assert described.read.folder == good
+    assert (Path(described.local) / "config.json").read_bytes() == (good / "config.json").read_bytes()
     # The repo changes between the check and the load: this process loads what it checked.
     marker = tmp_path / "pwned"
     evil = with_step(
@@ -215,3 +218,66 @@ def test_a_hub_checkpoint_is_checked_and_loaded_from_one_snapshot(tmp_path, act_
     assert refused.returncode == 2 and "'subprocess.Popen'" in refused.stderr, refused.stderr[-2000:]
     time.sleep(0.5)
     assert not marker.exists()
+
+
+READ_ONCE = """
+import sys
+from pathlib import Path
+
+folder = Path(sys.argv[1]).resolve()
+opened = []
+sys.addaudithook(lambda event, args: event == "open" and isinstance(args[0], (str, Path))
+                 and Path(args[0]).resolve().is_relative_to(folder) and opened.append(Path(args[0]).name))
+from lerobot_condground.core.configs import EvalEnvConfig
+from lerobot_condground.evaluation.checkpoints import describe_checkpoint, load_policy
+from lerobot_condground.evaluation.rollout import EnvSpec
+
+described = describe_checkpoint(str(folder))
+spec = EnvSpec.for_checkpoint(EvalEnvConfig(task="PickPlaceFixedBin-v0"), described, "clean")
+load_policy(described, spec.lerobot_config())
+print(sorted(opened))
+print(described.local)
+"""
+
+
+def test_a_checkpoint_is_read_once_and_its_private_copy_goes_with_the_process(tmp_path, act_checkpoint):
+    """Describing and loading read each of the checkpoint's files once; LeRobot's loaders read the copy."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", READ_ONCE, str(act_checkpoint)], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    opened = eval(out[-2])  # a list of file names, printed by the script above
+    names = {p.name for p in act_checkpoint.iterdir() if p.is_file()}
+    assert opened and set(opened) <= names
+    assert len(opened) == len(set(opened)), opened
+    assert not Path(out[-1]).exists()  # the private copy was removed when the process ended
+
+
+def test_the_loader_loads_what_was_checked_when_the_folder_changes_after(tmp_path, act_checkpoint):
+    import torch
+
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(act_checkpoint, ckpt)
+    described = describe_checkpoint(str(ckpt))
+    spec = EnvSpec.for_checkpoint(EvalEnvConfig(task="PickPlaceFixedBin-v0"), described, "clean")
+    before = load_policy(described, spec.lerobot_config())
+    marker = tmp_path / "pwned"
+    with_step(
+        act_checkpoint,
+        tmp_path / "evil",
+        {"class": "subprocess.Popen", "config": {"args": ["touch", str(marker)]}},
+    )
+    shutil.copy(
+        tmp_path / "evil" / PREPROCESSOR, ckpt / PREPROCESSOR
+    )  # a step that runs code, after the check
+    (ckpt / "model.safetensors").write_bytes(b"\0" * 64)  # and other weights
+    after = load_policy(described, spec.lerobot_config())
+    assert after.hash == described.hash
+    for (name, a), b in zip(before.policy.state_dict().items(), after.policy.state_dict().values()):
+        assert torch.equal(a, b), name
+    time.sleep(0.5)
+    assert not marker.exists()
+    with pytest.raises(ValueError, match="model.safetensors is damaged or incomplete"):
+        describe_checkpoint(str(ckpt))  # read again, the changed folder is judged again

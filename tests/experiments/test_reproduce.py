@@ -106,8 +106,14 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         ),
         ("--train.extra_flags=--steps=5", "use --train.steps instead"),
         ("--train.extra_flags=--policy.dim_model=`3`", "whose value YAML cannot read at '`' (character 1)"),
-        ("--train.extra_flags=--save_checkpoint=false", "defeats every training stage (no checkpoint is saved"),
-        ("--train.extra_flags=--policy.path=outputs/x", "defeats every training stage (the stage would train"),
+        (
+            "--train.extra_flags=--save_checkpoint=false",
+            "defeats every training stage (no checkpoint is saved",
+        ),
+        (
+            "--train.extra_flags=--policy.path=outputs/x",
+            "defeats every training stage (the stage would train",
+        ),
         ("--record.observation_height=32", "--record.observation_height/width: Image height 32 cannot be"),
         ("--eval.n_episodes=150000", "--eval.n_episodes=150000 is not allowed; allowed: 1 to 100000"),
         (
