@@ -21,8 +21,16 @@ from .scene import MAX_RENDER_HEIGHT, MAX_RENDER_WIDTH, PHYSICS_DT
 SERVO_MAX_STEP = MAX_JOINT_VELOCITY * PHYSICS_DT
 
 MIN_RENDER_SIDE = 64
-# "agent_pos" renders nothing: for expert checks and physics benchmarks.
-OBS_TYPES = ("pixels_agent_pos", "pixels", "agent_pos")
+# "agent_pos" renders nothing: for expert checks and physics benchmarks. "state" is its name in LeRobot's
+# env tests and gym-pusht.
+OBS_TYPES = ("pixels_agent_pos", "pixels", "agent_pos", "state")
+
+
+def check_obs_type(obs_type: str) -> str:
+    """The observation type, LeRobot's `state` spelled as this env's `agent_pos`."""
+    if obs_type not in OBS_TYPES:
+        raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
+    return "agent_pos" if obs_type == "state" else obs_type
 
 
 def check_resolution(height: int, width: int) -> None:
@@ -64,8 +72,7 @@ class ArmEnv(gym.Env):
         check_servo(servo)
         check_camera_codec(camera_codec, "camera_codec", height, width)
         self.servo, self.camera_codec = servo, camera_codec
-        if obs_type not in OBS_TYPES:
-            raise ValueError(f"Unknown obs_type {obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
+        obs_type = check_obs_type(obs_type)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"Unknown render_mode {render_mode!r}; allowed: rgb_array or None")
         self.obs_type, self.height, self.width = obs_type, height, width

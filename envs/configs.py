@@ -84,7 +84,7 @@ class CondGroundEnvConfig(EnvConfig):
         from lerobot_condground.core.codec import check_camera_codec
         from lerobot_condground.core.ur3e import check_servo
 
-        from .arm_env import OBS_TYPES, check_fps, check_resolution
+        from .arm_env import check_fps, check_obs_type, check_resolution
 
         check_env_task(self.task)
         ConditionSpec.parse(self.condition)
@@ -125,8 +125,7 @@ class CondGroundEnvConfig(EnvConfig):
             self.camera_codec, "--env.camera_codec", self.observation_height, self.observation_width
         )
         check_fps(self.fps)
-        if self.obs_type not in OBS_TYPES:
-            raise ValueError(f"Unknown obs_type {self.obs_type!r}; allowed: {', '.join(OBS_TYPES)}")
+        self.obs_type = check_obs_type(self.obs_type)
         if self.episode_length < 1:
             raise ValueError(f"episode_length={self.episode_length} must be a positive number of steps")
         image = PolicyFeature(

@@ -65,7 +65,6 @@ HOME_TOLERANCE = 0.1  # rad, every joint
 # Gripper closure below which the jaw is open wider than the handle (holding it closes to 0.69).
 OPEN_CLOSURE = 0.6
 REST_SPEED = 0.03  # m/s
-OBS_TYPES = ("pixels_agent_pos", "pixels", "agent_pos")
 
 
 class RoutingTracker:

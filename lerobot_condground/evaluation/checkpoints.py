@@ -402,6 +402,7 @@ def load_policy(
     """Builds the policy and its processors with LeRobot's own factories, as `lerobot-eval` does, from a
     checkpoint described here (a path) or already (what `describe_checkpoint` judged is what loads)."""
     if isinstance(checkpoint, LoadedPolicy):
+        register_plugins()  # in a worker process, as describe_checkpoint does
         loaded = dataclasses.replace(checkpoint)
     else:
         loaded = describe_checkpoint(checkpoint, label, index, trust_remote_code)

@@ -270,7 +270,7 @@ class ACTModifiedConfig(ACTConfig):
             switches = ", ".join(f"{c}={getattr(self, c)}" for c in COMPONENTS)
             raise ValueError(
                 f"act_modified variant {self.variant!r} ({switches}) needs the dataset features {missing}, which "
-                f"the dataset lacks. `condground record` writes them; variant {fallback!r} does not need them."
+                f"the dataset lacks. `condground record` writes them; --policy.variant={fallback} builds without them."
             )
         super().validate_features()
         if self.attention_camera is None and self.image_features:

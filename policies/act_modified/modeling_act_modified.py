@@ -18,8 +18,6 @@ Design choices:
   softmax before dropout, and the stock fused attention kernel still serves the forward pass.
 """
 
-from __future__ import annotations
-
 import contextlib
 import copy
 import dataclasses
@@ -424,14 +422,16 @@ class ACTModifiedPolicy(ACTPolicy):
         logger.info("Warm start from %s; fresh: %s", source, ", ".join(missing) or "nothing")
 
     def _images_listed(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        # The backbone takes any size, and the attention loss and prompt geometry would silently be wrong:
-        # frames of another size than the training data are an error wherever the policy runs.
-        for key, feature in self.config.image_features.items():
+        # The backbone pools and the position embedding follows the feature map, so like stock ACT any frame
+        # size runs; eq. (1)'s attention is supervised on the training frames' token grid, so a variant with
+        # the attention loss refuses frames of another size wherever it runs.
+        for key, feature in self.config.image_features.items() if self.config.use_attention_loss else ():
             if key in batch and tuple(batch[key].shape[-2:]) != tuple(feature.shape[-2:]):
                 (h, w), (th, tw) = batch[key].shape[-2:], feature.shape[-2:]
                 _refuse(
-                    f"{key} frames are {h}x{w}, but this act_modified checkpoint was trained on {th}x{tw}; "
-                    f"render at the training size (--env.observation_height={th} --env.observation_width={tw})"
+                    f"{key} frames are {h}x{w}, but this act_modified checkpoint was trained on {th}x{tw} (its "
+                    f"attention loss, eq. (1), is defined on that token grid); render at the training size "
+                    f"(--env.observation_height={th} --env.observation_width={tw})"
                 )
         batch = dict(batch)
         batch[OBS_IMAGES] = [batch[key] for key in self.config.image_features]

@@ -8,8 +8,6 @@ rows over the patch columns are kept, as small copies, never as views of the ful
 checkpointing the layers run again during backward; those recomputations are not stored again.
 """
 
-from __future__ import annotations
-
 import contextlib
 import logging
 from pathlib import Path

@@ -177,7 +177,7 @@ def test_segmentation_masks_cover_the_entities_they_name():
         (dict(observation_height=720, observation_width=1280), "Image height 720 cannot be rendered"),
         (dict(observation_width=32), "Image width 32 cannot be rendered"),
         (dict(fps=33), "Control rate fps=33 is not allowed"),
-        (dict(obs_type="state"), "Unknown obs_type 'state'"),
+        (dict(obs_type="states"), "Unknown obs_type 'states'"),
         (dict(servo="fast"), "servo='fast' is not allowed; allowed: interpolated, direct"),
     ],
 )

@@ -416,7 +416,9 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
     cfg = ACTModifiedConfig(
         variant="full", input_features=features, output_features=dict(ACTION_FEATURES), **SMALL
     )
-    with pytest.raises(ValueError, match=r"prompt\.object.*prompt\.receptacle.*'augmentation_attention'"):
+    with pytest.raises(
+        ValueError, match=r"prompt\.object.*prompt\.receptacle.*--policy\.variant=augmentation_attention"
+    ):
         ACTModifiedPolicy(cfg)
     cfg = ACTModifiedConfig(
         variant="augmentation",
@@ -424,7 +426,7 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         output_features=dict(ACTION_FEATURES),
         **SMALL,
     )
-    with pytest.raises(ValueError, match=r"segmentation.*'standard'"):
+    with pytest.raises(ValueError, match=r"segmentation.*--policy\.variant=standard builds"):
         ACTModifiedPolicy(cfg)
 
 
