@@ -23,6 +23,7 @@ import shlex
 import subprocess
 import sys
 
+from lerobot_condground.core.provenance import console_script
 from lerobot_condground.core.training import CPU_STEPS
 
 
@@ -38,7 +39,7 @@ def commands(args) -> list[list[str]]:
             else []
         )
         out.append([
-            "condground", "compare", f"--env.task={args.task}", f"--env.servo={args.servo}",
+            console_script("condground"), "compare", f"--env.task={args.task}", f"--env.servo={args.servo}",
             f"--dataset.root={args.data}", f"--baseline.name={args.baseline}", *baseline,
             f"--treated.name={name}", f"--treated.flags={flags}", f"--train.seeds={args.seeds}",
             f"--train.steps={args.steps}", f"--train.save_freq={args.every}", f"--train.variant={args.variant}",

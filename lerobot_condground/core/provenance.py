@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import platform
+import sys
 from importlib import metadata
+from pathlib import Path
 
 PACKAGES = ("lerobot", "torch", "mujoco", "lerobot_policy_condground")
 
@@ -38,3 +40,9 @@ def command_line(subcommand: str, cfg) -> list[str]:
         return [f"--{prefix[:-1]}={text}"]
 
     return ["condground", subcommand, *flatten("", draccus.encode(cfg))]
+
+
+def console_script(name: str) -> str:
+    """A console script installed beside this interpreter (condground, lerobot-train): found without PATH,
+    which `make test` and a cron job need not have."""
+    return str(Path(sys.executable).parent / name)

@@ -39,7 +39,7 @@ from lerobot_condground.core.configs import (
     check_at_least,
 )
 from lerobot_condground.core.files import read_json_object
-from lerobot_condground.core.provenance import RECORD_FILE, command_line, versions
+from lerobot_condground.core.provenance import RECORD_FILE, command_line, console_script, versions
 from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import (
@@ -359,10 +359,10 @@ def check_layouts(cfg: CompareConfig, arms: list[Arm]) -> None:
 def train_command(cfg: CompareConfig, arm: Arm, run: Path, seed: int) -> list[str]:
     last = run / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
     if last.exists():
-        return ["condground", "train", f"--config_path={last}", "--resume=true"]
+        return [console_script("condground"), "train", f"--config_path={last}", "--resume=true"]
     data = [f"--dataset.root={cfg.dataset.root}"] if cfg.dataset.root else []
     return [
-        "condground", "train", "--policy.type=act_modified", f"--policy.variant={cfg.train.variant}",
+        console_script("condground"), "train", "--policy.type=act_modified", f"--policy.variant={cfg.train.variant}",
         "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), f"--batch_size={CPU_BATCH_SIZE}",
         f"--dataset.repo_id={cfg.dataset.repo_id or f'local/{cfg.env.task}'}", *data,
         f"--steps={cfg.train.steps}", f"--save_freq={cfg.train.save_freq}", *shlex.split(cfg.train.flags),
@@ -467,7 +467,7 @@ def evaluate(cfg: CompareConfig, arms: list[Arm]) -> None:
                         f"{checkpoint(run, step)}: the run has no checkpoint at step {step}"
                     )
                 commands.append([
-                    "condground", "sweep", f"--policy.paths={checkpoint(run, step)}", *_env_flags(cfg),
+                    console_script("condground"), "sweep", f"--policy.paths={checkpoint(run, step)}", *_env_flags(cfg),
                     f"--sweep.conditions={','.join(conditions)}", "--eval.seeds=1",
                     f"--eval.n_episodes={cfg.eval.episodes}", f"--eval.seed_offset={cfg.eval.seed_offset}",
                     "--workers=1", f"--output_dir={out}", "--progress=false",
@@ -690,7 +690,7 @@ def failures(cfg: CompareConfig, arms: list[Arm]) -> pd.DataFrame:
     ]  # fmt: skip
     run_all(
         [
-            ["condground", "failures", f"--policy.path={checkpoint(run, arm.pooled[-1])}", f"--env.task={cfg.env.task}",
+            [console_script("condground"), "failures", f"--policy.path={checkpoint(run, arm.pooled[-1])}", f"--env.task={cfg.env.task}",
              f"--env.servo={cfg.env.servo}", f"--failures.episodes={cfg.eval.episodes}",
              f"--failures.seed_offset={cfg.eval.seed_offset}", f"--output_dir={out}", "--progress=false"]
             for arm, seed, run, out in todo

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from lerobot_condground.core.configs import usable_cores
 from lerobot_condground.core.files import read_json_object
-from lerobot_condground.core.provenance import versions
+from lerobot_condground.core.provenance import console_script, versions
 from lerobot_condground.core.training import amp_flags
 from lerobot_condground.core.ur3e import SERVO_BEFORE_THE_SETTING
 from lerobot_condground.experiments.plan import (
@@ -45,11 +45,6 @@ MANIFEST = "reproduce.json"
 LOG_STEP = re.compile(r"\bstep:(\d+(?:\.\d+)?)([KMB]?)\b")
 
 
-def _script(name: str) -> str:
-    """A console script installed beside this interpreter."""
-    return str(Path(sys.executable).parent / name)
-
-
 class StageFailedError(RuntimeError):
     """A stage's command exited with an error: its own log says why, not a traceback of this scheduler."""
 
@@ -61,7 +56,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
     task, variant, seed = stage.task, stage.variant, stage.seed
     if stage.kind in ("record", "takeover"):
         recording = [
-            _script("condground"), "record", f"--env.task={task}", "--env.condition=clean",
+            console_script("condground"), "record", f"--env.task={task}", "--env.condition=clean",
             f"--env.servo={cfg.env.servo}", f"--env.observation_height={cfg.record.observation_height}",
             f"--env.observation_width={cfg.record.observation_width}",
             f"--dataset.repo_id=local/{task}", f"--dataset.root={here}", "--progress=false",
@@ -79,7 +74,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         ]  # fmt: skip
     if stage.kind == "merge":
         return [
-            _script("condground"),
+            console_script("condground"),
             "merge",
             f"--roots=[{','.join(str(out / name) for name in stage.after)}]",
             f"--output.root={here}",
@@ -88,14 +83,14 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
     if stage.kind in ("train", "driver"):
         last = here / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
         if last.is_file():  # LeRobot's own resume: model, optimizer, scheduler, step and data order
-            return [_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
+            return [console_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
         device = [f"--policy.device={cfg.train.device}"] if cfg.train.device else []
         # bf16 where this CPU runs it faster (core.training.amp_flags): a speed setting, so not pinned
         precision = amp_flags() if cfg.train.device == "cpu" else []
         steps = _steps(cfg, stage)
         (data,) = stage.after  # the dataset stage it trains on: the demonstrations (driver) or the merge
         return [
-            _script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device, *precision,
+            console_script("lerobot-train"), "--policy.type=act_modified", f"--policy.variant={variant}", *device, *precision,
             "--policy.push_to_hub=false", *cfg.policy_flags(), f"--dataset.repo_id=local/{task}",
             f"--dataset.root={out / data}", f"--batch_size={cfg.train.batch_size}",
             f"--steps={steps}", f"--save_freq={cfg.train.save_freq}",
@@ -106,7 +101,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         checkpoints = [checkpoint_dir(cfg, task, variant, s) for s in range(cfg.train.seeds)]
         counterbalanced = stage.kind == "sweep_counterbalanced"
         return [
-            _script("condground"), "sweep", f"--policy.paths={','.join(map(str, checkpoints))}",
+            console_script("condground"), "sweep", f"--policy.paths={','.join(map(str, checkpoints))}",
             f"--env.task={task}", f"--env.counterbalanced={str(counterbalanced).lower()}",
             f"--env.servo={cfg.env.servo}", f"--env.episode_length={cfg.eval.episode_length}",
             f"--sweep.conditions={cfg.eval.counterbalanced if counterbalanced else cfg.eval.conditions}",
@@ -131,7 +126,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
                 f"--workers={share}",
             ]  # fmt: skip
         return [
-            _script("condground"),
+            console_script("condground"),
             stage.kind,
             *common,
             *specific,
@@ -140,7 +135,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         ]
     inputs = [f"--input_dir={out / name}" for name in stage.after]
     return [
-        _script("condground"), "report", *inputs, f"--output={here / 'report.html'}",
+        console_script("condground"), "report", *inputs, f"--output={here / 'report.html'}",
         f"--title=condground reproduce, preset {cfg.preset}: {', '.join(cfg.task_list())}",
     ]  # fmt: skip
 

@@ -21,12 +21,12 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_condground.core.conditions import TASKS
 from lerobot_condground.core.configs import check_at_least
+from lerobot_condground.core.provenance import console_script
 from lerobot_condground.core.training import (
     CPU_BATCH_SIZE,
     CPU_DRIFT_STD,
@@ -119,11 +119,6 @@ class Config:
         check_at_least(self, "", episodes_per_task=1, expert_episodes=1)
 
 
-def _script(name: str) -> str:
-    """A console script installed beside this interpreter (lerobot-train, lerobot-eval)."""
-    return str(Path(sys.executable).parent / name)
-
-
 def _run(command: list[str]) -> None:
     """Runs a stock script, showing its progress lines (training steps, eval batches) as they come."""
     print("$", " ".join(command), flush=True)
@@ -186,7 +181,7 @@ def _train(cfg: Config, root: Path) -> Path:
         return checkpoint
     _run(
         [
-            _script("condground"),
+            console_script("condground"),
             "train",  # lerobot-train's loop with decoded frames held in memory
             "--policy.type=act_modified",
             f"--policy.variant={cfg.train.variant}",
@@ -212,7 +207,7 @@ def _evaluate(cfg: Config, checkpoint: Path, condition: str) -> list[int]:
     out = Path(cfg.output_dir) / "eval" / condition
     _run(
         [
-            _script("lerobot-eval"),
+            console_script("lerobot-eval"),
             f"--policy.path={checkpoint}",
             "--policy.use_amp=false",  # fp32 inference, as every measured evaluation (and fast on any CPU)
             "--env.type=condground",
