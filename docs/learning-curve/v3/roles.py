@@ -5,8 +5,9 @@ wrote under <out>/roles/<run>/ (50 held-out layouts a condition).
     python docs/learning-curve/v3/roles.py --out=outputs/levers28 --arms=actsize_6k,augmentation --seeds=0,1
 
 Writes roles_6000.csv (per arm, seed and condition: success, pick, grasped nothing, competitor object and
-receptacle chosen) and roles_6000_diff.csv (second arm less the first per condition, paired by layout with
-the training run as the replicate: `statistics.clustered_difference`; no interval with one seed an arm).
+receptacle chosen; rows of runs and conditions not swept here are kept) and, where both arms have two seeds or
+more, roles_6000_diff.csv (second arm less the first per condition, paired by layout with the training run as
+the replicate: `statistics.clustered_difference`). A run without sweeps under <out> is skipped.
 """
 
 from __future__ import annotations
@@ -35,7 +36,11 @@ def main() -> None:
     rows, frames = [], []
     for arm in arms:
         for seed in seeds:
-            table = read_table(args.out / "roles" / f"{TASK}_standard_{arm}_s{seed}" / "results.parquet")
+            path = args.out / "roles" / f"{TASK}_standard_{arm}_s{seed}" / "results.parquet"
+            if not path.exists():
+                print(f"no sweeps of {arm}, seed {seed}: {path}")
+                continue
+            table = read_table(path)
             frames.append(table.assign(arm=arm, run=seed))
             for condition, f in table.groupby("condition"):
                 rows.append(
@@ -45,12 +50,21 @@ def main() -> None:
                      "competitor_object": f["selected_competitor_object"].mean(),
                      "competitor_receptacle": f["placed_in_competitor_receptacle"].mean()}
                 )  # fmt: skip
-    pd.DataFrame(rows).to_csv(HERE / "roles_6000.csv", index=False, float_format="%.4f")
+    keys = ["arm", "seed", "step", "condition"]
+    new = pd.DataFrame(rows)
+    published = HERE / "roles_6000.csv"
+    if published.exists():
+        kept = pd.read_csv(published)
+        kept = kept[~kept.set_index(keys).index.isin(new.set_index(keys).index)]
+        new = pd.concat([kept, new], ignore_index=True)
+    new.sort_values(keys).to_csv(published, index=False, float_format="%.4f")
     every = pd.concat(frames, ignore_index=True).rename(columns={"layout_seed": "layout"})
     every["success"] = every["success"].astype(float)
     diffs = []
     for condition, f in every.groupby("condition"):
         base, treated = (f[f["arm"].eq(arm)][["run", "layout", "success"]] for arm in arms[:2])
+        if min(base["run"].nunique(), treated["run"].nunique()) < 2:
+            continue
         c = clustered_difference(base, treated)
         diffs.append(
             {"condition": condition, "baseline_arm": arms[0], "treated_arm": arms[1], "seeds": len(seeds),
@@ -58,9 +72,11 @@ def main() -> None:
              "low": c["low"], "high": c["high"], "p": c["p_value"],
              "seed_effects": " ".join(f"{e:+.4f}" for e in c["seed_effects"])}
         )  # fmt: skip
+    print(new.to_string(index=False))
+    if not diffs:
+        return
     table = pd.DataFrame(diffs)
     table.to_csv(HERE / "roles_6000_diff.csv", index=False, float_format="%.4f")
-    print(pd.DataFrame(rows).to_string(index=False))
     print(table.to_string(index=False))
 
 
