@@ -63,15 +63,32 @@ CPU_EPISODES = 200
 CPU_DRIFT_STD = 0.06
 
 
-def amp_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> list[str]:
-    """bf16 autocast where the CPU has AMX tiles: a training step 1.25 times as fast as fp32 there
-    (`condground bench`, docs/measurements.md); without them (AVX2) a step under autocast was 23 times slower. Every
-    `act_modified` loss term stays within bf16 rounding of fp32 (tested), so this is a speed setting."""
+def native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Whether this CPU multiplies bf16 natively: AMX tiles (Xeon) or AVX-512 BF16 dot products (AMD's Zen 4).
+    Only there can bf16 be faster than fp32; without them (AVX2) a step under autocast was 23 times slower."""
     try:
         flags = cpuinfo.read_text()
     except OSError:  # not Linux: no way to tell, fp32 is never the slow choice
+        return False
+    return any(f" {flag}" in flags for flag in ("amx_bf16", "avx512_bf16"))
+
+
+def amp_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> list[str]:
+    """bf16 autocast where the CPU has AMX tiles: a training step 1.25 times as fast as fp32 there
+    (`condground bench`, docs/measurements.md). Every `act_modified` loss term stays within bf16 rounding of
+    fp32 (tested), so this is a speed setting."""
+    try:
+        flags = cpuinfo.read_text()
+    except OSError:
         return []
     return ["--policy.use_amp=true"] if " amx_bf16" in flags else []
+
+
+def speed_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> list[str]:
+    """How a training step runs fastest here without changing what it computes beyond rounding (measured by
+    `condground bench`'s training options, docs/measurements.md): channels-last memory order, and bf16 where
+    `amp_flags` turns it on."""
+    return ["--policy.channels_last=true", *amp_flags(cpuinfo)]
 
 
 def policy_flags() -> list[str]:

@@ -124,6 +124,10 @@ class ACTModifiedConfig(ACTConfig):
     backbone_width: int = 64
     # The stage read as image tokens (one of BACKBONE_LAYERS): layer3 cuts the ResNet there, stride 16.
     backbone_layer: str = "layer4"
+    # The backbone's frames and activations in channels-last memory order (a speed setting: oneDNN's
+    # convolutions run faster so on the CPUs `condground bench` measured; the same function, summed in another
+    # order). Weights and checkpoints are the same either way.
+    channels_last: bool = False
 
     # Learning-rate schedule of the training preset (one of SCHEDULERS), as diffusion policy names it.
     # cosine needs `--steps` to be the run's real budget: the rate reaches zero there.

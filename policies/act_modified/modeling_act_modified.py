@@ -316,6 +316,10 @@ class ACTModified(ACT):
         return super().train(mode)
 
 
+def _channels_last_input(_module: nn.Module, args: tuple) -> tuple:
+    return (args[0].contiguous(memory_format=torch.channels_last), *args[1:])
+
+
 @contextlib.contextmanager
 def _running_batch_norm(backbone: nn.Module):
     """Prompt crops (close-ups of one entity) are another image distribution than the scene. Batch norm in
@@ -359,6 +363,10 @@ class ACTModifiedPolicy(ACTPolicy):
         config.validate_features()
         self.config = config
         self.model = ACTModified(config)
+        if config.channels_last and config.image_features:
+            # The frames, not the weights: parameters in channels-last order would give AdamW's state the same
+            # order, which LeRobot's checkpoint writer (safetensors) refuses as non-contiguous.
+            self.model.backbone.register_forward_pre_hook(_channels_last_input)
         if config.temporal_ensemble_coeff is not None:
             self.temporal_ensembler = ACTTemporalEnsembler(config.temporal_ensemble_coeff, config.chunk_size)
         self.reset()

@@ -1,7 +1,7 @@
 import json
 
 from helpers import run_cli
-from lerobot_condground.core.training import amp_flags
+from lerobot_condground.core.training import native_bf16
 
 
 def test_bench_json_reports_every_figure():
@@ -27,6 +27,9 @@ def test_bench_json_reports_every_figure():
         "--train.batch_size=2",
         "--train.steps=1",
         "--train.dim_model=32",
+        "--train.batch_sizes=4",
+        "--train.peak_seconds=0.3",
+        "--train.compile=false",  # inductor compiles for minutes; the option is timed by the bench's own runs
     )
     result = json.loads(out.stdout.strip().splitlines()[-1])
     for key in (
@@ -66,8 +69,27 @@ def test_bench_json_reports_every_figure():
     assert result["train_threads"] == 1 and result["train_batch_size"] == 2
     split = result["train_step_split_s"]["full"]
     assert split["data"] > 0 and split["preprocess"] > 0 and split["update"] > 0
-    # bf16 autocast is timed beside fp32 exactly where the configuration turns it on
-    if amp_flags():
-        assert result["train_samples_per_s_standard_bf16"] > 0 and result["train_bf16_speedup"] > 0
-    else:
-        assert "train_bf16_speedup" not in result
+    # The ceiling and the speed options, against the current path and LeRobot's, in the same rounds.
+    assert result["train_flops_per_sample"]["full"] > result["train_flops_per_sample"]["standard"] > 0
+    peaks = result["train_matmul_peak_gflops"]
+    assert set(peaks) == ({"fp32", "bf16"} if native_bf16() else {"fp32"}) and min(peaks.values()) > 0
+    options = {"lerobot", "current", "channels_last", "kept"} | (
+        {"onednn_bf16", "bf16", "bf16_channels_last"} if native_bf16() else set()
+    )
+    expected = {f"{variant}.{option}" for variant in ("standard", "full") for option in options}
+    assert set(result["train_option_samples_per_s"]) == set(result["train_option_speedup"]) == expected
+    assert (
+        result["train_option_speedup"]["standard.current"]
+        == result["train_option_speedup"]["full.current"]
+        == 1
+    )
+    assert result["train_compile_s"] == {}
+    assert "channels_last" in result["train_kept_options"]
+    assert result["train_config_speedup"] > 0 and 0 < result["train_flop_fraction"] < 1
+    assert set(result["train_batch_samples_per_s"]) == {"4"}
+    profile = result["train_profile"]
+    assert set(profile["phases_s"]) == {"data", "preprocess", "forward", "backward", "optimizer"}
+    assert profile["operators_s"]["convolution"] > 0 and all(s >= 0 for s in profile["operators_s"].values())
+    layouts = result["train_thread_layouts_samples_per_s"]
+    assert layouts["1x2"] > 0 and layouts["2x1"] > 0
+    assert result["train_2x1_over_1x2"] == layouts["2x1"] / layouts["1x2"]

@@ -262,6 +262,39 @@ def test_every_loss_term_holds_under_bf16_autocast():
         assert bf16[key] == pytest.approx(fp32[key], rel=0.05, abs=0.01), key
 
 
+def test_channels_last_computes_the_same_function_and_checkpoints_as_lerobot_does(tmp_path):
+    """--policy.channels_last is a speed setting: the backbone's activations are channels-last, the loss and
+    gradients agree with the default memory order to float rounding, and LeRobot's checkpoint writers take the
+    weights and AdamW's state (safetensors refuses non-contiguous tensors)."""
+    from lerobot.optim.optimizers import save_optimizer_state
+
+    batch = make_batch()
+    losses, grads, maps = [], [], []
+    for channels_last in (False, True):
+        policy = make_policy(
+            variant="full", dropout=0.0, backbone_norm="batchnorm", channels_last=channels_last
+        )
+        policy.model.backbone.register_forward_hook(lambda m, a, out: maps.append(out["feature_map"]))
+        policy.train()
+        torch.manual_seed(1)
+        loss, _ = policy(batch)
+        loss.backward()
+        losses.append(loss.item())
+        grads.append(torch.cat([p.grad.flatten() for p in policy.parameters() if p.grad is not None]))
+    assert maps[0].is_contiguous() and not maps[-1].is_contiguous()
+    assert maps[-1].is_contiguous(memory_format=torch.channels_last)
+    assert losses[1] == pytest.approx(losses[0], rel=1e-4)
+    assert torch.allclose(grads[1], grads[0], rtol=1e-3, atol=1e-5)
+    optimizer = torch.optim.AdamW(policy.parameters())
+    optimizer.step()
+    (tmp_path / "optimizer").mkdir()
+    save_optimizer_state(optimizer, tmp_path / "optimizer")
+    policy.save_pretrained(tmp_path / "policy")
+    loaded = ACTModifiedPolicy.from_pretrained(tmp_path / "policy")
+    for (name, a), b in zip(policy.state_dict().items(), loaded.state_dict().values(), strict=True):
+        assert torch.equal(a, b), name
+
+
 def test_cpu_training_configuration_parses_as_lerobot_train_flags():
     """The flags the quickstart and the learning-curve script hand to lerobot-train build a valid policy."""
     import draccus
