@@ -53,7 +53,7 @@ class TrainBenchConfig:
     batch_sizes: str = "32,64"
     # One run on two threads against two runs on one thread each (separate processes).
     thread_layouts: bool = True
-    # Seconds spent measuring each matmul peak.
+    # Seconds spent measuring each peak (a matmul and a convolution, per precision).
     peak_seconds: float = 3.0
 
     def __post_init__(self):

@@ -1,12 +1,14 @@
 """How near this core's limit a training step at the CPU configuration runs, and what brings it nearer.
 
 - The ceiling: the FLOPs of one training sample (forward and backward, `torch.utils.flop_counter`) and this
-  core's measured matmul peak, fp32 and, where the CPU multiplies bf16 natively (AMX, AVX-512 BF16), bf16.
+  core's measured peak (a matmul and a 3x3 convolution), fp32 and, where the CPU multiplies bf16 natively (AMX,
+  AVX-512 BF16), bf16.
 - Each option against the current path (`condground train`: the frame cache, fp32), `standard` and `full`
   each on its own loader, in alternating rounds: channels-last memory order, `torch.compile` (compile time
   reported apart), oneDNN's bf16 arithmetic for fp32 convolutions and matmuls and bf16 autocast (both where
   bf16 is native), and LeRobot's own path (no frame cache), against which `train_config_speedup` is taken.
-- The kept path (`core.training.speed_flags`) at other batch sizes, in samples per second.
+- The kept path (`core.training.speed_flags`) at other batch sizes, in samples per second, in alternating rounds
+  with the configuration's batch.
 - One run on two threads against two runs on one thread each, in processes started together.
 - A profile of the kept path's steps: seconds in the loader, the preprocessor, forward, backward and the
   optimizer, and by kind of operator.
@@ -66,18 +68,30 @@ def flops_per_sample(trainer: Trainer) -> float:
     return counter.get_total_flops() / trainer.batch_size
 
 
-def matmul_peak(dtype: torch.dtype, seconds: float, size: int = 1024) -> float:
-    """Sustained GFLOP/s of a square matmul on torch's threads: the best of three windows."""
-    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
-    a @ b
-    best = 0.0
-    for _ in range(3):
-        count, start = 0, time.perf_counter()
-        while time.perf_counter() - start < seconds / 3:
-            a @ b
-            count += 1
-        best = max(best, 2 * size**3 * count / (time.perf_counter() - start) / 1e9)
-    return best
+def peak_gflops(dtype: torch.dtype, seconds: float) -> dict[str, float]:
+    """Sustained GFLOP/s on torch's threads of a 1024x1024 matmul (MKL) and of a 3x3 convolution (oneDNN, the
+    backbone's kind of layer), the best of three windows each: on AMD CPUs MKL's matmul runs well below the core's
+    peak, which oneDNN's convolutions reach, so the ceiling is the larger of the two."""
+    a, b = (torch.randn(1024, 1024, dtype=dtype) for _ in range(2))
+    conv = torch.nn.Conv2d(256, 256, 3, padding=1, bias=False).to(dtype)
+    x = torch.randn(16, 256, 32, 32, dtype=dtype)
+    kernels = {
+        "matmul": (lambda: a @ b, 2 * 1024**3),
+        "conv3x3": (lambda: conv(x), 2 * 16 * 32 * 32 * 256 * 256 * 9),
+    }
+    found = {}
+    with torch.no_grad():
+        for name, (kernel, flops) in kernels.items():
+            kernel()
+            best = 0.0
+            for _ in range(3):
+                count, start = 0, time.perf_counter()
+                while time.perf_counter() - start < seconds / 6:
+                    kernel()
+                    count += 1
+                best = max(best, flops * count / (time.perf_counter() - start) / 1e9)
+            found[name] = best
+    return found
 
 
 def profile_steps(trainer: Trainer, steps: int) -> dict:
@@ -159,19 +173,16 @@ def bench_options(repo_id: str, root: str, cfg, rounds: int, cache) -> dict:
     compile_s = {name: t.compile_s for name, t in trainers.items() if t.option.compile}
     del trainers  # a model and its optimizer state each
     kept = options["kept"]
-    peaks = {"fp32": matmul_peak(torch.float32, cfg.peak_seconds)}
+    peaks = {"fp32": peak_gflops(torch.float32, cfg.peak_seconds)}
     if native_bf16():
-        peaks["bf16"] = matmul_peak(torch.bfloat16, cfg.peak_seconds)
-    batches = {}
-    for size in cfg.batch_list():
-        t = trainer("standard", kept, size)
-        t.step()
-        batches[str(size)] = t.samples_per_s(cfg.steps)
+        peaks["bf16"] = peak_gflops(torch.bfloat16, cfg.peak_seconds)
+    sizes = sorted({cfg.batch_size, *cfg.batch_list()})
+    batches = alternating_rates({str(n): trainer("standard", kept, n) for n in sizes}, cfg.steps, rounds)
     profiled = trainer("standard", kept)
     profiled.step()
     result = {
         "train_flops_per_sample": flops,
-        "train_matmul_peak_gflops": peaks,
+        "train_peak_gflops": peaks,
         "train_option_samples_per_s": {name: statistics.median(r) for name, r in rates.items()},
         "train_option_speedup": {
             name: ratio(rates, name, f"{name.split('.')[0]}.current") for name in rates
@@ -180,10 +191,13 @@ def bench_options(repo_id: str, root: str, cfg, rounds: int, cache) -> dict:
         "train_kept_options": [f for f, on in dataclasses.asdict(kept).items() if on],
         # The kept path against LeRobot's plain fp32 path at the same configuration, in the same rounds.
         "train_config_speedup": ratio(rates, "standard.kept", "standard.lerobot"),
-        # Achieved FLOP/s of the kept path over the matmul peak of the precision it computes in.
+        # Achieved FLOP/s of the kept path over the measured peak of the precision it computes in.
         "train_flop_fraction": flops["standard"] * statistics.median(rates["standard.kept"]) / 1e9
-        / peaks["bf16" if kept.amp else "fp32"],
-        "train_batch_samples_per_s": batches,
+        / max(peaks["bf16" if kept.amp else "fp32"].values()),
+        # The kept path at each batch size (the learning rate is not scaled here: this is speed only), in
+        # alternating rounds with the configuration's batch, and each against it.
+        "train_batch_samples_per_s": {n: statistics.median(r) for n, r in batches.items()},
+        "train_batch_speedup": {n: ratio(batches, n, str(cfg.batch_size)) for n in batches},
         "train_profile": profile_steps(profiled, cfg.steps),
     }  # fmt: skip
     if cfg.thread_layouts:

@@ -71,8 +71,9 @@ def test_bench_json_reports_every_figure():
     assert split["data"] > 0 and split["preprocess"] > 0 and split["update"] > 0
     # The ceiling and the speed options, against the current path and LeRobot's, in the same rounds.
     assert result["train_flops_per_sample"]["full"] > result["train_flops_per_sample"]["standard"] > 0
-    peaks = result["train_matmul_peak_gflops"]
-    assert set(peaks) == ({"fp32", "bf16"} if native_bf16() else {"fp32"}) and min(peaks.values()) > 0
+    peaks = result["train_peak_gflops"]
+    assert set(peaks) == ({"fp32", "bf16"} if native_bf16() else {"fp32"})
+    assert all(set(p) == {"matmul", "conv3x3"} and min(p.values()) > 0 for p in peaks.values())
     options = {"lerobot", "current", "channels_last", "kept"} | (
         {"onednn_bf16", "bf16", "bf16_channels_last"} if native_bf16() else set()
     )
@@ -86,7 +87,8 @@ def test_bench_json_reports_every_figure():
     assert result["train_compile_s"] == {}
     assert "channels_last" in result["train_kept_options"]
     assert result["train_config_speedup"] > 0 and 0 < result["train_flop_fraction"] < 1
-    assert set(result["train_batch_samples_per_s"]) == {"4"}
+    assert set(result["train_batch_samples_per_s"]) == set(result["train_batch_speedup"]) == {"2", "4"}
+    assert result["train_batch_speedup"]["2"] == 1 and result["train_batch_samples_per_s"]["4"] > 0
     profile = result["train_profile"]
     assert set(profile["phases_s"]) == {"data", "preprocess", "forward", "backward", "optimizer"}
     assert profile["operators_s"]["convolution"] > 0 and all(s >= 0 for s in profile["operators_s"].values())
