@@ -232,6 +232,15 @@ def alternating_rates(trainers: dict, steps: int, rounds: int) -> dict[str, list
     return rates
 
 
+def filled_cache(dataset) -> FrameCache:
+    """A frame cache holding every frame of the dataset, decoded once, as after the first epoch of a run."""
+    cache = FrameCache(max_gb=4)
+    with cache:
+        for index in range(len(dataset)):
+            dataset[index]
+    return cache
+
+
 def ratio(rates: dict, a, b) -> float:
     return statistics.median(x / y for x, y in zip(rates[a], rates[b], strict=True))
 
@@ -245,10 +254,7 @@ def bench_training(repo_id: str, root: str, cfg: TrainBenchConfig, rounds: int) 
     torch.set_num_threads(cfg.threads)
     try:
         dataset = LeRobotDataset(repo_id, root=root)
-        cache = FrameCache(max_gb=4)
-        with cache:  # every frame decoded once, as after the first epoch of a run
-            for index in range(len(dataset)):
-                dataset[index]
+        cache = filled_cache(dataset)
         trainers = {
             name: Trainer(policy_cfg, option, repo_id, root, cfg.batch_size, cache)
             for name, (policy_cfg, option) in _configs(cfg, dataset.meta.features).items()

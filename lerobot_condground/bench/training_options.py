@@ -20,10 +20,19 @@ import dataclasses
 import multiprocessing
 import statistics
 import time
+from queue import Empty
 
 import torch
 
-from lerobot_condground.bench.training import PHASES, Option, Trainer, alternating_rates, policy_config, ratio
+from lerobot_condground.bench.training import (
+    PHASES,
+    Option,
+    Trainer,
+    alternating_rates,
+    filled_cache,
+    policy_config,
+    ratio,
+)
 from lerobot_condground.core.training import native_bf16, speed_flags
 
 VARIANTS = ("standard", "full")
@@ -118,16 +127,11 @@ def _process_rate(repo_id, root, option, dim_model, batch_size, threads, steps, 
     """One training run in its own process: build, fill the frame cache, warm up, wait, time `steps` steps."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from lerobot_condground.datasets.frame_cache import FrameCache
     from lerobot_condground.evaluation.checkpoints import register_plugins
 
     register_plugins()  # a fresh process: act_modified and its processor steps
     torch.set_num_threads(threads)
-    cache = FrameCache(max_gb=4)
-    with cache:
-        dataset = LeRobotDataset(repo_id, root=root)
-        for index in range(len(dataset)):
-            dataset[index]
+    cache = filled_cache(LeRobotDataset(repo_id, root=root))
     trainer = Trainer(policy_config("standard", option, dim_model), option, repo_id, root, batch_size, cache)
     trainer.step()
     barrier.wait()
@@ -150,7 +154,7 @@ def thread_layouts(repo_id, root, option, dim_model, batch_size, steps) -> dict[
                 raise RuntimeError(f"a {name} training process failed (exit {[w.exitcode for w in workers]})")
             try:
                 found.append(queue.get(timeout=5))
-            except Exception:  # queue.Empty: look at the processes again
+            except Empty:  # look at the processes again
                 continue
         for w in workers:
             w.join()

@@ -63,25 +63,24 @@ CPU_EPISODES = 200
 CPU_DRIFT_STD = 0.06
 
 
-def native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """Whether this CPU multiplies bf16 natively: AMX tiles (Xeon) or AVX-512 BF16 dot products (AMD's Zen 4).
-    Only there can bf16 be faster than fp32; without them (AVX2) a step under autocast was 23 times slower."""
+def _cpu_flags(cpuinfo: Path) -> str:
     try:
-        flags = cpuinfo.read_text()
+        return cpuinfo.read_text()
     except OSError:  # not Linux: no way to tell, fp32 is never the slow choice
-        return False
-    return any(f" {flag}" in flags for flag in ("amx_bf16", "avx512_bf16"))
+        return ""
+
+
+def native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Whether this CPU multiplies bf16 natively: AMX tiles (Xeon) or AVX-512 BF16 dot products (AMD's Zen 4 and 5).
+    Only there can bf16 be faster than fp32; without them (AVX2) a step under autocast was 23 times slower."""
+    return any(f" {flag}" in _cpu_flags(cpuinfo) for flag in ("amx_bf16", "avx512_bf16"))
 
 
 def amp_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> list[str]:
     """bf16 autocast where the CPU has AMX tiles: a training step 1.25 times as fast as fp32 there
     (`condground bench`, docs/measurements.md). Every `act_modified` loss term stays within bf16 rounding of
     fp32 (tested), so this is a speed setting."""
-    try:
-        flags = cpuinfo.read_text()
-    except OSError:
-        return []
-    return ["--policy.use_amp=true"] if " amx_bf16" in flags else []
+    return ["--policy.use_amp=true"] if " amx_bf16" in _cpu_flags(cpuinfo) else []
 
 
 def speed_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> list[str]:
