@@ -26,6 +26,9 @@ class CondGroundEnvConfig(EnvConfig):
     condition: a name (clean, object_color_2, receptacle_shape_1, full_mixed, ...) or fields
         (object_color=2,receptacle_shape=1).
     counterbalanced: permute target and competitor colors and shapes across episodes.
+    competitor_pool: eval (competitors from the evaluation assets, as every evaluation scene) or augmentation
+        (from the augmentation assets, matching the target as the copy-paste step's pastes do: for recording
+        demonstrations among rendered competitors no evaluation scene holds).
     subgoal (InstrumentRouting-v0): procedure, a subgoal (pick, inspect, route, place, home), or several
         separated by commas, one drawn per episode.
     cue (InstrumentRouting-v0): true sends the destination masks the `condground_rgb_cue` step draws,
@@ -41,6 +44,7 @@ class CondGroundEnvConfig(EnvConfig):
     task: str | None = "PickPlaceRandomBin-v0"
     condition: str = "clean"
     counterbalanced: bool = False
+    competitor_pool: str = "eval"
     fps: int = 20
     episode_length: int = 300
     obs_type: str = "pixels_agent_pos"
@@ -85,15 +89,18 @@ class CondGroundEnvConfig(EnvConfig):
         from lerobot_condground.core.ur3e import check_servo
 
         from .arm_env import check_fps, check_obs_type, check_resolution
+        from .layout import check_competitor_pool
 
         check_env_task(self.task)
         ConditionSpec.parse(self.condition)
+        check_competitor_pool(self.competitor_pool, "--env.competitor_pool")
         routing = self.task == ROUTING_TASK
         if routing:
             parse_episodes(self.subgoal)
             for flag, value, allowed in (
                 ("condition", self.condition, "clean"),
                 ("counterbalanced", self.counterbalanced, False),
+                ("competitor_pool", self.competitor_pool, "eval"),
                 ("prompts", self.prompts, None),
             ):
                 if value != allowed and not (flag == "prompts" and value is False):
@@ -191,6 +198,7 @@ class CondGroundEnvConfig(EnvConfig):
         return {
             "condition": self.condition,
             "counterbalanced": self.counterbalanced,
+            "competitor_pool": self.competitor_pool,
             "obs_type": self.obs_type,
             "observation_height": self.observation_height,
             "observation_width": self.observation_width,

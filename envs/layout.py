@@ -16,6 +16,7 @@ from lerobot_condground.core.conditions import MATCHES, ROLES, ConditionSpec, ch
 
 from .assets import (
     OBJECT_SHAPES,
+    POOLS,
     Asset,
     pool_colors,
     pool_shapes,
@@ -83,10 +84,22 @@ class Layout:
         return f"Pick the {self.target_object.asset} and place it in the {self.target_receptacle.asset}."
 
 
+def check_competitor_pool(pool: str, flag: str = "competitor_pool") -> str:
+    if pool not in POOLS:
+        raise ValueError(f"{flag}={pool!r} is not allowed; allowed: {', '.join(POOLS)}")
+    return pool
+
+
 def choose_assets(
-    spec: ConditionSpec, counterbalanced: bool, rng: np.random.Generator
+    spec: ConditionSpec, counterbalanced: bool, rng: np.random.Generator, competitor_pool: str = "eval"
 ) -> list[tuple[Asset, str]]:
-    """The target object, the target receptacle, then one asset per competitor with its match class."""
+    """The target object, the target receptacle, then one asset per competitor with its match class.
+
+    Competitors from the `augmentation` pool match their target as the copy-paste step's pastes do: a color
+    match is an augmentation shape in the target's color, a shape match the target's shape in an augmentation
+    color, neither both from the pool (drawn afresh each layout); so no competitor is ever one an evaluation
+    scene can hold, and recording among them is copy-paste rendered in 3D: shading, shadows, contact."""
+    check_competitor_pool(competitor_pool)
     colors = list(pool_colors("eval"))
     out: list[tuple[Asset, str]] = []
     targets = {}
@@ -100,11 +113,15 @@ def choose_assets(
         out.append((targets[role], "target"))
     for role in ROLES:
         target = targets[role]
-        other_shapes = [s for s in pool_shapes(role, "eval") if s != target.shape]
-        other_colors = [c for c in colors if c != target.color]
-        if counterbalanced:
-            other_shapes = list(rng.permutation(other_shapes))
-            other_colors = list(rng.permutation(other_colors))
+        if competitor_pool == "augmentation":
+            other_shapes = list(rng.permutation(pool_shapes(role, "augmentation")))
+            other_colors = list(rng.permutation(pool_colors("augmentation")))
+        else:
+            other_shapes = [s for s in pool_shapes(role, "eval") if s != target.shape]
+            other_colors = [c for c in colors if c != target.color]
+            if counterbalanced:
+                other_shapes = list(rng.permutation(other_shapes))
+                other_colors = list(rng.permutation(other_colors))
         for match in MATCHES:
             for k in range(spec.count(role, match)):
                 if match == "color":
@@ -123,12 +140,14 @@ def _sample_xy(rng: np.random.Generator) -> np.ndarray:
     return np.array([r * math.cos(a), r * math.sin(a)])
 
 
-def sample_layout(task: str, spec: ConditionSpec, counterbalanced: bool, seed: int) -> Layout:
-    """Draws a layout; the same (task, spec, counterbalanced, seed) always gives the same layout."""
+def sample_layout(
+    task: str, spec: ConditionSpec, counterbalanced: bool, seed: int, competitor_pool: str = "eval"
+) -> Layout:
+    """Draws a layout; the same (task, spec, counterbalanced, seed, competitor_pool) always gives the same layout."""
     check_task(task)
     streams = np.random.SeedSequence(seed).spawn(3)
     asset_rng, target_rng, competitor_rng = (np.random.default_rng(s) for s in streams)
-    assets = choose_assets(spec, counterbalanced, asset_rng)
+    assets = choose_assets(spec, counterbalanced, asset_rng, competitor_pool)
     # Targets first, from their own stream: identical poses across conditions for one seed.
     for _ in range(MAX_ATTEMPTS):
         if task == "PickPlaceFixedBin-v0":
@@ -174,17 +193,24 @@ def _separated(a: Entity, b: Entity) -> bool:
     return math.dist(a.xy, b.xy) >= a.clearance + b.clearance + GAP
 
 
-def _max_clearance(role: str) -> float:
+def _max_clearance(role: str, pool: str) -> float:
     return max(
         Entity(0, Asset(role, shape, "red"), "target", (0.0, 0.0), 0.0).clearance
-        for shape in pool_shapes(role, "eval")
+        for shape in pool_shapes(role, pool)
     )
 
 
-def check_fits(task: str, spec: ConditionSpec, counterbalanced: bool, seeds: int = 3) -> None:
+def check_fits(
+    task: str, spec: ConditionSpec, counterbalanced: bool, seeds: int = 3, competitor_pool: str = "eval"
+) -> None:
     """Raises LayoutError before any work starts when the condition cannot be laid out."""
+    check_competitor_pool(competitor_pool)
     n = {role: 1 + sum(spec.count(role, m) for m in MATCHES) for role in ROLES}
-    need = sum(n[role] * math.pi * (_max_clearance(role) + GAP / 2) ** 2 for role in n)
+    need = sum(
+        math.pi * (_max_clearance(role, "eval") + GAP / 2) ** 2
+        + (n[role] - 1) * math.pi * (_max_clearance(role, competitor_pool) + GAP / 2) ** 2
+        for role in n
+    )
     # Area the disks can cover: the sector of centers grown by a typical clearance.
     grow = 0.06
     span = 2 * ANGLE_MAX
@@ -200,4 +226,4 @@ def check_fits(task: str, spec: ConditionSpec, counterbalanced: bool, seeds: int
             f"(at most {MAX_DENSITY:.0%} can be filled); use fewer competitors"
         )
     for seed in range(seeds):
-        sample_layout(task, spec, counterbalanced, seed)
+        sample_layout(task, spec, counterbalanced, seed, competitor_pool)

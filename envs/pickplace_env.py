@@ -55,13 +55,15 @@ class PickPlaceEnv(ArmEnv):
         fps: int = DEFAULT_FPS,
         servo: str = "interpolated",
         camera_codec: str = "none",
+        competitor_pool: str = "eval",
     ):
         check_task(task)
         self.condition = ConditionSpec.parse(condition)
         self._setup(obs_type, observation_height, observation_width, render_mode, fps, servo, camera_codec)
-        check_fits(task, self.condition, counterbalanced)
+        check_fits(task, self.condition, counterbalanced, competitor_pool=competitor_pool)
         self.task = task
         self.counterbalanced = counterbalanced
+        self.competitor_pool = competitor_pool
         self.wrist_camera = wrist_camera
         self.segmentation = segmentation
         self.prompts = prompts
@@ -78,13 +80,15 @@ class PickPlaceEnv(ArmEnv):
         self._asset_key = None
         self._prompt_crops: dict[str, np.ndarray] = {}
         # A first layout so that attributes read before reset (task_description) are meaningful.
-        self._load_layout(sample_layout(task, self.condition, counterbalanced, 0))
+        self._load_layout(sample_layout(task, self.condition, counterbalanced, 0, competitor_pool))
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         layout_seed = int(self.np_random.integers(2**31 - 1))
-        self._load_layout(sample_layout(self.task, self.condition, self.counterbalanced, layout_seed))
+        self._load_layout(
+            sample_layout(self.task, self.condition, self.counterbalanced, layout_seed, self.competitor_pool)
+        )
         mujoco.mj_resetData(self.model, self.data)
         apply_layout(self.model, self.data, self.layout)
         self.data.qpos[self._arm_qadr] = robot.HOME_QPOS

@@ -55,6 +55,7 @@ PROVENANCE_ENV_KEYS = (
     "task",
     "condition",
     "counterbalanced",
+    "competitor_pool",
     "fps",
     "observation_height",
     "observation_width",
@@ -63,7 +64,7 @@ PROVENANCE_ENV_KEYS = (
     "servo",
 )
 # What a provenance written before a setting existed recorded with.
-PROVENANCE_ENV_BEFORE = {"servo": SERVO_BEFORE_THE_SETTING}
+PROVENANCE_ENV_BEFORE = {"servo": SERVO_BEFORE_THE_SETTING, "competitor_pool": "eval"}
 
 
 @dataclass
@@ -285,7 +286,7 @@ def _open_dataset(cfg: RecordConfig, root: Path, features: dict, policy_hash: st
             f"feature {key}" for key in sorted(set(info["features"]) - set(features) - set(DEFAULT_FEATURES))
         ]
         recorded = {**PROVENANCE_ENV_BEFORE, **previous["env"]} if "env" in previous else {}
-        for key in ("task", "condition", "counterbalanced", "subgoal", "servo"):
+        for key in ("task", "condition", "counterbalanced", "competitor_pool", "subgoal", "servo"):
             if recorded.get(key, getattr(cfg.env, key)) != getattr(cfg.env, key):
                 mismatches.append(f"env.{key} {recorded[key]!r} != {getattr(cfg.env, key)!r}")
         drift = previous.get("drift", {"std": 0.0, "time_constant": cfg.drift.time_constant})

@@ -96,6 +96,7 @@ class ACTProbe:
         self.attention_layer = attention_layer
         self._handles = []
         self._cameras: list = []
+        self._camera_call = False
         self.forward_passes = 0
         self.clear()
 
@@ -108,8 +109,13 @@ class ACTProbe:
     def __enter__(self):
         model = self.model
 
+        # A camera frame is known by identity before any other pre-hook runs: `channels_last` swaps the frame
+        # for a copy in channels-last order, and prompt crops pass through the same backbone.
+        def before_backbone(module, args):
+            self._camera_call = any(args[0] is image for image in self._cameras)
+
         def on_backbone(module, args, output):
-            if any(args[0] is image for image in self._cameras):
+            if self._camera_call:
                 self.feature_maps.append(output["feature_map"])
 
         def on_encoder(module, args, output):
@@ -119,6 +125,7 @@ class ACTProbe:
             self.decoder_out = output
 
         self._handles = [
+            model.backbone.register_forward_pre_hook(before_backbone, prepend=True),
             model.backbone.register_forward_hook(on_backbone),
             model.encoder.register_forward_hook(on_encoder),
             model.decoder.register_forward_hook(on_decoder),

@@ -40,7 +40,7 @@ from lerobot_condground.core.configs import (
 )
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import RECORD_FILE, command_line, console_script, versions
-from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags
+from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags, speed_flags
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import (
     METRICS,
@@ -363,8 +363,8 @@ def train_command(cfg: CompareConfig, arm: Arm, run: Path, seed: int) -> list[st
     data = [f"--dataset.root={cfg.dataset.root}"] if cfg.dataset.root else []
     return [
         console_script("condground"), "train", "--policy.type=act_modified", f"--policy.variant={cfg.train.variant}",
-        "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), f"--batch_size={CPU_BATCH_SIZE}",
-        f"--dataset.repo_id={cfg.dataset.repo_id or f'local/{cfg.env.task}'}", *data,
+        "--policy.device=cpu", "--policy.push_to_hub=false", *policy_flags(), *speed_flags(),
+        f"--batch_size={CPU_BATCH_SIZE}", f"--dataset.repo_id={cfg.dataset.repo_id or f'local/{cfg.env.task}'}", *data,
         f"--steps={cfg.train.steps}", f"--save_freq={cfg.train.save_freq}", *shlex.split(cfg.train.flags),
         *arm.flags, "--log_freq=100", "--num_workers=0", "--wandb.enable=false", f"--seed={seed}",
         f"--output_dir={run}",

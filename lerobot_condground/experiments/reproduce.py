@@ -29,7 +29,7 @@ from tqdm import tqdm
 from lerobot_condground.core.configs import usable_cores
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import console_script, versions
-from lerobot_condground.core.training import amp_flags
+from lerobot_condground.core.training import speed_flags
 from lerobot_condground.core.ur3e import SERVO_BEFORE_THE_SETTING
 from lerobot_condground.experiments.plan import (
     TAKEOVER_SEED,
@@ -85,8 +85,8 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
         if last.is_file():  # LeRobot's own resume: model, optimizer, scheduler, step and data order
             return [console_script("lerobot-train"), f"--config_path={last}", "--resume=true"]
         device = [f"--policy.device={cfg.train.device}"] if cfg.train.device else []
-        # bf16 where this CPU runs it faster (core.training.amp_flags): a speed setting, so not pinned
-        precision = amp_flags() if cfg.train.device == "cpu" else []
+        # channels-last, and bf16 where this CPU runs it faster (core.training.speed_flags): not pinned
+        precision = speed_flags() if cfg.train.device == "cpu" else []
         steps = _steps(cfg, stage)
         (data,) = stage.after  # the dataset stage it trains on: the demonstrations (driver) or the merge
         return [

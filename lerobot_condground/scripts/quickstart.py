@@ -33,8 +33,8 @@ from lerobot_condground.core.training import (
     CPU_EPISODES,
     CPU_FRAME_SIZE,
     CPU_STEPS,
-    amp_flags,
     policy_flags,
+    speed_flags,
 )
 from lerobot_condground.evaluation.checkpoints import describe_checkpoint
 
@@ -188,7 +188,7 @@ def _train(cfg: Config, root: Path) -> Path:
             "--policy.device=cpu",
             "--policy.push_to_hub=false",
             *policy_flags(),
-            *amp_flags(),
+            *speed_flags(),
             f"--dataset.repo_id={_repo_id(TRAIN_TASK)}",
             f"--dataset.root={root}",
             f"--batch_size={cfg.train.batch_size}",

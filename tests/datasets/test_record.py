@@ -101,11 +101,23 @@ def test_rerun_resumes_and_different_settings_are_refused(tmp_path, capsys):
         and "env.condition 'clean' != 'full_mixed'" in bad.stderr
     )
     # A dataset recorded before the servo setting existed holds the targets-set-at-once expert's motion.
+    # ... and before the competitor pool existed, the evaluation pool's competitors.
     provenance = read_json(root / RECORD_FILE)
     assert provenance["env"].pop("servo") == "interpolated"
+    assert provenance["env"].pop("competitor_pool") == "eval"
     (root / RECORD_FILE).write_text(json.dumps(provenance))
     bad = run_cli("condground", "record", *common, "--dataset.num_episodes=3", check=False)
     assert bad.returncode != 0 and "env.servo 'direct' != 'interpolated'" in bad.stderr, bad.stderr
+    assert "competitor_pool" not in bad.stderr, bad.stderr
+    bad = run_cli(
+        "condground",
+        "record",
+        *common,
+        "--dataset.num_episodes=3",
+        "--env.competitor_pool=augmentation",
+        check=False,
+    )
+    assert bad.returncode != 0 and "env.competitor_pool 'eval' != 'augmentation'" in bad.stderr, bad.stderr
     assert LeRobotDataset("local/resume", root=root).meta.total_episodes == 2
 
     # Episodes the record does not list were added by something else (a stock merge, a copy): their seeds

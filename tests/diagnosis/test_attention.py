@@ -162,6 +162,36 @@ def test_matches_act_modified_supervised_attention(tiny_checkpoints):
     env.close()
 
 
+def test_the_probe_reads_the_camera_features_of_a_policy_trained_channels_last(tiny_checkpoints):
+    """`--policy.channels_last` swaps each frame for a channels-last copy before the backbone; the probe still
+    tells the camera's pass from the prompt crops' and reads the same features."""
+    from lerobot_condground.policies.act_modified.modeling_act_modified import _channels_last_input
+
+    loaded, spec = load_act_family(
+        PolicyRefConfig(path=str(tiny_checkpoints[0])), EvalEnvConfig(condition="full_mixed")
+    )
+    env = spec.make()
+    obs, _ = env.reset(seed=4)
+    policy = loaded.policy
+    read = []
+    with torch.inference_mode():
+        batch = policy_batch(loaded, [obs], [env])
+        for channels_last in (False, True):
+            handle = (
+                policy.model.backbone.register_forward_pre_hook(_channels_last_input)
+                if channels_last
+                else None
+            )
+            with ACTProbe(policy.model) as probe:
+                probe.forward(policy, batch)
+                assert len(probe.feature_maps) == 1  # the camera's pass, not the two prompt crops'
+                read.append(probe.activations()["vision_encoder"])
+            if handle:
+                handle.remove()
+    np.testing.assert_allclose(read[1], read[0], atol=1e-4)
+    env.close()
+
+
 def test_bad_input(tiny_checkpoints, act_checkpoint, tmp_path):
     with pytest.raises(ValueError, match=r"--attention.head=4 is out of range; allowed: 0..3"):
         _run(act_checkpoint, tmp_path / "x", head=4)

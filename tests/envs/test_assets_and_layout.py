@@ -47,6 +47,49 @@ def test_layouts_never_overlap_stay_in_reach_and_match_their_class(task, spec, c
         assert lay.target_receptacle.xy == pytest.approx(layout.FIXED_RECEPTACLE_XY)
 
 
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(task=st.sampled_from(TASKS), counterbalanced=st.booleans(), seed=st.integers(0, 2**31 - 2))
+def test_augmentation_pool_competitors_match_as_pastes_and_are_never_evaluation_assets(
+    task, counterbalanced, seed
+):
+    """Recording among rendered competitors (`--env.competitor_pool=augmentation`) must never show the policy
+    an asset an evaluation scene can hold; the targets and their poses stay those of the evaluation pool."""
+    spec = ConditionSpec.parse("full_mixed")
+    lay = layout.sample_layout(task, spec, counterbalanced, seed, "augmentation")
+    evaluation = layout.sample_layout(task, spec, counterbalanced, seed)
+    assert lay.entities[:2] == evaluation.entities[:2]
+    eval_assets, aug_colors = assets.pool_assets("eval"), set(assets.AUGMENTATION_COLORS)
+    for e in lay.entities[2:]:
+        t = lay.entities[0 if e.asset.role == "object" else 1].asset
+        aug_shape = e.asset.shape in assets.pool_shapes(e.asset.role, "augmentation")
+        assert e.asset not in eval_assets
+        assert (
+            e.asset.color == t.color,
+            e.asset.shape == t.shape,
+            aug_shape,
+            e.asset.color in aug_colors,
+        ) == {
+            "color": (True, False, True, False),
+            "shape": (False, True, False, True),
+            "neither": (False, False, True, True),
+        }[e.match]
+
+
+def test_competitor_pools_vary_and_a_bad_pool_is_refused():
+    shapes = {
+        e.asset.shape
+        for s in range(20)
+        for e in layout.sample_layout(
+            "PickPlaceFixedBin-v0", ConditionSpec.parse("object_neither_1"), False, s, "augmentation"
+        ).entities[2:]
+    }
+    assert len(shapes) > 1
+    with pytest.raises(
+        ValueError, match="competitor_pool='train' is not allowed; allowed: eval, augmentation"
+    ):
+        layout.sample_layout("PickPlaceFixedBin-v0", ConditionSpec(), False, 0, "train")
+
+
 def test_same_seed_same_layout_and_paired_targets_across_conditions():
     a = layout.sample_layout("PickPlaceRandomBin-v0", ConditionSpec.parse("full_mixed"), True, 7)
     assert a == layout.sample_layout("PickPlaceRandomBin-v0", ConditionSpec.parse("full_mixed"), True, 7)

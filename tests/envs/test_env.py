@@ -179,6 +179,10 @@ def test_segmentation_masks_cover_the_entities_they_name():
         (dict(fps=33), "Control rate fps=33 is not allowed"),
         (dict(obs_type="states"), "Unknown obs_type 'states'"),
         (dict(servo="fast"), "servo='fast' is not allowed; allowed: interpolated, direct"),
+        (
+            dict(competitor_pool="train"),
+            "competitor_pool='train' is not allowed; allowed: eval, augmentation",
+        ),
     ],
 )
 def test_bad_construction_is_refused_with_the_value_named(kwargs, fragment):

@@ -135,6 +135,14 @@ def test_env_config_flags_that_do_not_apply_are_refused():
         ConfigError, match="--env.condition='full_mixed' does not apply to InstrumentRouting-v0"
     ):
         CondGroundEnvConfig(task="InstrumentRouting-v0", condition="full_mixed")
+    with pytest.raises(
+        ConfigError, match="--env.competitor_pool='augmentation' does not apply to InstrumentRouting-v0"
+    ):
+        CondGroundEnvConfig(task="InstrumentRouting-v0", competitor_pool="augmentation")
+    with pytest.raises(
+        ConfigError, match="--env.competitor_pool='train' is not allowed; allowed: eval, augmentation"
+    ):
+        CondGroundEnvConfig(task="PickPlaceFixedBin-v0", competitor_pool="train")
     with pytest.raises(ConfigError, match="--env.subgoal='route' applies to InstrumentRouting-v0 only"):
         CondGroundEnvConfig(task="PickPlaceRandomBin-v0", subgoal="route")
     cfg = CondGroundEnvConfig(task="InstrumentRouting-v0")
