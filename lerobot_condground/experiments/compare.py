@@ -310,13 +310,21 @@ def published_rollouts(path: Path, name: str, task: str) -> pd.DataFrame:
     return table.assign(condition=table["condition"].fillna("clean"))
 
 
+def _shown(key: str, value: str) -> str:
+    """A setting as tables print it: a path inside the working directory relative to it (published tables must
+    not name this machine's folders), any other as it is."""
+    if key == "dataset.root" and Path(value).is_relative_to(Path.cwd().resolve()):
+        return str(Path(value).relative_to(Path.cwd().resolve()))
+    return value
+
+
 def differences(a: Arm, b: Arm) -> list[str]:
     """Every known budget or data setting in which the arms differ, as `key: a -> b`."""
     out = []
     for key in (*BUDGET_KEYS, *DATA_KEYS):
         x, y = _normal(key, a.setting.get(key)), _normal(key, b.setting.get(key))
         if x is not None and y is not None and x != y:
-            out.append(f"{key}: {x} -> {y}")
+            out.append(f"{key}: {_shown(key, x)} -> {_shown(key, y)}")
     return out
 
 

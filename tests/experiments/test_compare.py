@@ -109,6 +109,19 @@ def test_arms_that_differ_in_budget_or_data_are_refused_unless_allowed(small_rec
     assert not out.exists()
 
 
+def test_a_recording_inside_the_working_directory_is_named_relative_to_it(tmp_path, monkeypatch):
+    """Differences go into published tables: they must not name this machine's folders."""
+    from lerobot_condground.experiments.compare import Arm, differences
+
+    monkeypatch.chdir(tmp_path)
+
+    def arm(root: Path) -> Arm:
+        return Arm("a", "flags", [], [], {"dataset.root": str(root)}, [2])
+
+    found = differences(arm(Path("data/clean")), arm(tmp_path / "data" / "clutter"))
+    assert found == ["dataset.root: data/clean -> data/clutter"]
+
+
 def test_held_out_layouts_a_recording_trained_on_are_refused(small_recording, tmp_path):
     refused = compare(small_recording, tmp_path / "out", "--eval.seed_offset=1", check=False)
     assert refused.returncode == 2
