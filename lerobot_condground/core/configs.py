@@ -116,6 +116,10 @@ class EvalEnvConfig:
     servo: str = "interpolated"
     # Camera frames as rendered (none) or through a recorded dataset's video codec (video): see core/codec.py.
     camera_codec: str = "none"
+    # Where look-alike competitors come from: eval (the evaluation assets, the protocol's scenes) or
+    # augmentation (the copy-paste pool's, as `condground record --env.competitor_pool=augmentation` renders
+    # them): scoring a policy trained among those on the same kind of scene tells novel assets from clutter.
+    competitor_pool: str = "eval"
 
     def __post_init__(self):
         from lerobot_condground.core.codec import check_camera_codec

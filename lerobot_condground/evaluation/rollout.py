@@ -37,6 +37,7 @@ class EnvSpec:
     episode_length: int = 300
     servo: str = "interpolated"
     camera_codec: str = "none"
+    competitor_pool: str = "eval"
     # InstrumentRouting-v0 only: the env kwargs of the same names (see envs/routing_env.py).
     subgoal: str = "procedure"
     cue: bool | None = None
@@ -63,6 +64,7 @@ class EnvSpec:
             episode_length=env.episode_length,
             servo=env.servo,
             camera_codec=env.camera_codec,
+            competitor_pool=env.competitor_pool,
         )
 
     def make(self):

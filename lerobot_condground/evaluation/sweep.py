@@ -104,7 +104,10 @@ def parse_conditions(text: str) -> list[str]:
 
 
 def validate(cfg: SweepConfig) -> list[str]:
+    from lerobot_condground.envs.layout import check_competitor_pool
+
     check_task(cfg.env.task)
+    check_competitor_pool(cfg.env.competitor_pool, "--env.competitor_pool")
     if cfg.launcher not in LAUNCHERS:
         raise ValueError(f"Unknown --launcher={cfg.launcher!r}; allowed: {', '.join(LAUNCHERS)}")
     for name, value, low in (
@@ -150,6 +153,8 @@ def make_manifest(cfg: SweepConfig, conditions: list[str], checkpoints: list[Loa
     }
     if cfg.env.camera_codec != "none":  # absent from sweeps made before the setting: they stay resumable
         grid["camera_codec"] = cfg.env.camera_codec
+    if cfg.env.competitor_pool != "eval":  # the same
+        grid["competitor_pool"] = cfg.env.competitor_pool
     return {
         "kind": "sweep",
         "grid": grid,
@@ -176,10 +181,12 @@ def check_same_sweep(root: Path, manifest: dict) -> bool:
     if not results:
         return True
     previous = read_json_object(path, "Sweep manifest")
+    before, now = previous["grid"], manifest["grid"]
+    # Keys only a non-default setting writes (camera_codec, competitor_pool) can be on either side.
     diffs = [
-        f"{k}: {previous['grid'].get(k)!r} -> {v!r}"
-        for k, v in manifest["grid"].items()
-        if previous["grid"].get(k) != v
+        f"{k}: {before.get(k)!r} -> {now.get(k)!r}"
+        for k in dict.fromkeys([*before, *now])
+        if before.get(k) != now.get(k)
     ]
     old = [(c["path"], c["hash"], c.get("label")) for c in previous["checkpoints"]]
     new = [(c["path"], c["hash"], c.get("label")) for c in manifest["checkpoints"]]

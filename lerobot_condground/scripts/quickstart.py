@@ -49,7 +49,8 @@ class QuickstartTrainConfig:
     # minutes, and at half the step budget what 200 would gain is not measured.
     episodes: int = CPU_EPISODES // 2
     drift_std: float = CPU_DRIFT_STD
-    # Half the configuration's budget: 28 minutes of training on the 2-core EPYC's two threads.
+    # Half the configuration's budget: 28 minutes of training on a 2-core EPYC's two threads in fp32, 15 on
+    # the Zen 5 EPYC's kept bf16 path (docs/quickstart.md).
     steps: int = CPU_STEPS // 2
     batch_size: int = CPU_BATCH_SIZE
     # `standard` shows the look-alike gap the paper starts from; `full` adds the prompts the probe needs.

@@ -52,7 +52,9 @@ def checkpoint(label: str, seed: int, task: str) -> dict:
     }
 
 
-def sweep_manifest(task: str, conditions=CONDITIONS, seed_offset: int = 0, counterbalanced=False) -> dict:
+def sweep_manifest(
+    task: str, conditions=CONDITIONS, seed_offset: int = 0, counterbalanced=False, competitor_pool=None
+) -> dict:
     grid = {
         "task": task,
         "conditions": list(conditions),
@@ -67,6 +69,8 @@ def sweep_manifest(task: str, conditions=CONDITIONS, seed_offset: int = 0, count
         "observation_height": 240,
         "observation_width": 320,
     }
+    if competitor_pool:
+        grid["competitor_pool"] = competitor_pool
     return {
         "kind": "sweep",
         "grid": grid,
@@ -145,9 +149,15 @@ def sweep_rows(manifest: dict, rng) -> pd.DataFrame:
 
 
 def write_sweep(
-    folder: Path, task: str, seed: int, conditions=CONDITIONS, seed_offset: int = 0, counterbalanced=False
+    folder: Path,
+    task: str,
+    seed: int,
+    conditions=CONDITIONS,
+    seed_offset: int = 0,
+    counterbalanced=False,
+    competitor_pool=None,
 ) -> Path:
-    manifest = sweep_manifest(task, conditions, seed_offset, counterbalanced)
+    manifest = sweep_manifest(task, conditions, seed_offset, counterbalanced, competitor_pool)
     folder.mkdir(parents=True)
     (folder / "sweep.json").write_text(json.dumps(manifest, indent=2))
     write_table(
@@ -493,18 +503,21 @@ def test_sweeps_split_by_condition_are_paired_across_dirs(tmp_path):
     assert "Not paired" not in text
 
 
-def test_a_counterbalanced_sweep_is_its_own_condition(tmp_path):
-    # the same checkpoints, layouts and condition with permuted assets: another scene distribution
+def test_counterbalanced_and_augmentation_competitor_sweeps_are_their_own_conditions(tmp_path):
+    # the same checkpoints, layouts and condition with permuted or other assets: other scene distributions
     plain = write_sweep(tmp_path / "plain", TASKS[0], 1, ["clean", "full_mixed"])
     permuted = write_sweep(tmp_path / "cb", TASKS[0], 2, ["full_mixed"], counterbalanced=True)
+    pool = write_sweep(tmp_path / "aug", TASKS[0], 3, ["full_mixed"], competitor_pool="augmentation")
     _, md_path = build_report(
-        ReportConfig(input_dir=[str(plain), str(permuted)], output=str(tmp_path / "r.html"))
+        ReportConfig(input_dir=[str(pool), str(plain), str(permuted)], output=str(tmp_path / "r.html"))
     )
     stages = md_path.read_text().split("## Stage metrics")[1].split("\n## ")[0]
     rows = [line for line in stages.splitlines() if "act_modified/full" in line]
-    assert [row.split(" | ")[2] for row in rows] == ["clean", "full_mixed", "full_mixed (counterbalanced)"]
+    assert [row.split(" | ")[2] for row in rows] == [
+        "clean", "full_mixed", "full_mixed (augmentation competitors)", "full_mixed (counterbalanced)"
+    ]  # fmt: skip
     table1 = md_path.read_text().split("## Table I")[1].split("\n## ")[0]
-    assert "counterbalanced" not in table1  # Table I is the paper's plain full_mixed
+    assert "counterbalanced" not in table1 and "augmentation" not in table1  # the paper's plain full_mixed
 
 
 def test_sweeps_of_other_layouts_combine_but_do_not_pair(tmp_path):

@@ -14,6 +14,8 @@ import pytest
 
 from helpers import BIN, run_cli
 from lerobot_condground.core.configs import EvalEnvConfig, PolicyRefConfig
+from lerobot_condground.envs.assets import pool_assets
+from lerobot_condground.evaluation.checkpoints import describe_checkpoint
 from lerobot_condground.evaluation.results import (
     IDENTITY_COLUMNS,
     OUTCOME_COLUMNS,
@@ -21,6 +23,7 @@ from lerobot_condground.evaluation.results import (
     read_table,
     write_table,
 )
+from lerobot_condground.evaluation.rollout import EnvSpec
 from lerobot_condground.evaluation.sweep import (
     MANIFEST,
     SweepConfig,
@@ -133,6 +136,31 @@ def test_parallel_workers_and_ray_give_the_same_rows(tmp_path, tiny_checkpoints)
     for name in ("processes", "ray"):
         pd.testing.assert_frame_equal(runs[name][keys], runs["serial"][keys], check_dtype=False)
     assert (runs["serial"].steps == 12).all()
+
+
+def test_a_sweep_among_augmentation_competitors_renders_them_and_pins_the_pool(tmp_path):
+    """`--env.competitor_pool=augmentation` scores a policy among the copy-paste pool's rendered competitors
+    (issue 55: novel assets against clutter); a sweep of the evaluation pool cannot resume it."""
+    out = tmp_path / "aug"
+    cfg = sweep_config(
+        ["expert"], out, conditions="full_mixed", episodes=1, batch=1, length=3, workers=1,
+        env={"competitor_pool": "augmentation"},
+    )  # fmt: skip
+    assert read_metadata(run_sweep(cfg))["grid"]["competitor_pool"] == "augmentation"
+    env = EnvSpec.for_checkpoint(cfg.env, describe_checkpoint("expert"), "full_mixed").make()
+    env.reset(seed=3)
+    competitors = {e.asset for e in env.unwrapped.layout.entities[2:]}
+    env.close()
+    assert len(competitors) == 6 and not competitors & pool_assets("eval")
+    with pytest.raises(
+        ValueError, match=r"another grid; differences: competitor_pool: 'augmentation' -> None"
+    ):
+        run_sweep(sweep_config(["expert"], out, conditions="full_mixed", episodes=1, batch=1, length=3))
+    with pytest.raises(
+        ValueError, match="--env.competitor_pool='train' is not allowed; allowed: eval, augmentation"
+    ):
+        run_sweep(sweep_config(["expert"], tmp_path / "bad", env={"competitor_pool": "train"}))
+    assert not (tmp_path / "bad").exists()
 
 
 def test_bad_input_is_one_clear_error(tmp_path, tiny_checkpoints):

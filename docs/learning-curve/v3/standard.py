@@ -1,7 +1,10 @@
 """`standard` at the CPU configuration with every training seed it has, by the protocol: the sweeps `condground
-compare` wrote (or the same `condground sweep` commands) under <eval>/<task>_standard_<arm>_s<seed>/<step>/.
+compare` wrote (or the same `condground sweep` commands, of one checkpoint or several) anywhere under
+<eval>/<task>_standard_<arm>_s<seed>/, for each --eval given; a checkpoint's step is read off its path.
 
     python docs/learning-curve/v3/standard.py --eval=outputs/compare30/eval --seeds=0,1
+    python docs/learning-curve/v3/standard.py --task=PickPlaceRandomBin-v0 --arm=bf16_cl \
+        --eval=outputs/compare33/eval --eval=outputs/compare33/full_mixed
 
 Merges the arm's rollouts, checkpoints and stage funnel into levers_rollouts.csv, levers_checkpoints.csv and
 levers_funnel.csv (in place of its earlier rows: a later `condground compare --baseline.rollouts=...` then pairs
@@ -40,7 +43,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--eval", type=Path, required=True)
+    parser.add_argument("--eval", type=Path, action="append", required=True)
     parser.add_argument("--task", default="PickPlaceFixedBin-v0")
     parser.add_argument("--arm", default="actsize_6k")
     parser.add_argument("--seeds", default="0,1")
@@ -51,15 +54,18 @@ def main() -> None:
     conditions = args.conditions.split(",")
     frames = []
     for seed in seeds:
-        for step in steps:
-            table = read_table(
-                args.eval / f"{args.task}_standard_{args.arm}_s{seed}" / f"{step:06d}" / "results.parquet"
-            )
-            missing = set(conditions) - set(table["condition"])
-            if missing:
-                raise SystemExit(f"seed {seed}, step {step} has no sweep under {sorted(missing)}")
-            frames.append(table[table["condition"].isin(conditions)].assign(seed=seed, step=step))
-    every = pd.concat(frames, ignore_index=True).assign(lever=args.arm, task=args.task)
+        run = f"{args.task}_standard_{args.arm}_s{seed}"
+        for path in (p for root in args.eval for p in sorted((root / run).glob("**/results.parquet"))):
+            table = read_table(path)
+            step = table["checkpoint"].str.extract(r"(\d+)/pretrained_model$")[0].astype(int)
+            frames.append(table.assign(seed=seed, step=step))
+    every = pd.concat(frames, ignore_index=True)
+    every = every[every["condition"].isin(conditions) & every["step"].isin(steps)]
+    counts = every.groupby(["seed", "step", "condition"]).size()
+    expected = pd.MultiIndex.from_product([seeds, steps, conditions], names=counts.index.names)
+    if not counts.reindex(expected).eq(counts.max()).all():
+        raise SystemExit(f"every seed, step and condition needs the same held-out sweep; found\n{counts}")
+    every = every.assign(lever=args.arm, task=args.task)
     every["success"] = every["success"].astype(int)
 
     checkpoints = []

@@ -36,6 +36,7 @@ KIND_FILES = {
 COMPARISON_NUMBERS = ("seeds", "n", "baseline", "treated", "diff", "diff_low", "diff_high", "p", "cluster_low",
                       "cluster_high", "cluster_p")  # fmt: skip
 COUNTERBALANCED = " (counterbalanced)"
+AUGMENTATION_COMPETITORS = " (augmentation competitors)"
 # One trial of `condground subgoals`: the same weights on the same layout under the same condition and scorer.
 TRIAL_KEY = ("checkpoint_hash", "condition", "subgoal", "layout_seed", "scored_by")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -94,6 +95,8 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
     if grid.get("counterbalanced"):
         # Another scene distribution than the plain condition of the same name: its own rows in every table.
         frame = frame.assign(condition=frame["condition"] + COUNTERBALANCED)
+    if grid.get("competitor_pool", "eval") != "eval":  # the same: competitors no evaluation scene holds
+        frame = frame.assign(condition=frame["condition"] + AUGMENTATION_COMPETITORS)
     return frame.assign(source=str(folder))
 
 

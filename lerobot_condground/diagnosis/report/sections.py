@@ -36,7 +36,7 @@ from lerobot_condground.evaluation.statistics import (
 from .config import ReportConfig
 from .figures import difference_figure, funnel_figure, probe_figure, stage_figure, success_figure
 from .formatting import TASK_SHORT, fmt_diff, fmt_number, fmt_rate, metric_cell, pct, seed_spread, task_title
-from .inputs import COUNTERBALANCED, Inputs
+from .inputs import Inputs
 
 TABLE2_ROWS = {  # key in diagnostics.json "table2" -> row title
     "place_shift": "Place shift ↓",
@@ -130,7 +130,7 @@ def _condition_order(conditions) -> list[str]:
     grid = list(PAPER_GRID)
 
     def key(c: str) -> tuple:
-        plain = c.removesuffix(COUNTERBALANCED)  # right after the plain condition
+        plain = c.split(" (")[0]  # right after the plain condition: counterbalanced, augmentation competitors
         return (grid.index(plain) if plain in grid else len(grid), plain, c != plain)
 
     return sorted(set(conditions), key=key)
