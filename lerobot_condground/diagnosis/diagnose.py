@@ -169,9 +169,13 @@ def conditional_placement(
     if not manifest_path.is_file():
         raise FileNotFoundError(f"--sweep_dir={sweep_dir!r} has results.parquet but no sweep.json")
     manifest = read_json_object(manifest_path, "Sweep manifest")
-    if (manifest.get("grid") or {}).get("counterbalanced"):
+    grid = manifest.get("grid") or {}
+    if grid.get("counterbalanced") or grid.get("competitor_pool", "eval") != "eval":
+        kind = (
+            "counterbalanced sweep" if grid.get("counterbalanced") else "sweep among augmentation competitors"
+        )
         raise ValueError(
-            f"--sweep_dir={sweep_dir!r} is a counterbalanced sweep (another scene distribution); give the plain one"
+            f"--sweep_dir={sweep_dir!r} is a {kind} (another scene distribution); give the plain one"
         )
     hashes = {c.get("hash") for c in manifest.get("checkpoints", [])}
     refuse_rows_outside(path, rows, ["checkpoint_hash"], lambda h: h in hashes, "sweep.json")

@@ -119,10 +119,10 @@ def validate(cfg: SubgoalsConfig) -> list[str]:
             f"--env.task={cfg.env.task!r} is not allowed; allowed: {ROUTING_TASK} (the pick-and-place tasks "
             "are evaluated per condition with condground sweep)"
         )
-    if cfg.env.condition is not None or cfg.env.counterbalanced:
+    if cfg.env.condition is not None or cfg.env.counterbalanced or cfg.env.competitor_pool != "eval":
         raise ValueError(
-            f"--env.condition and --env.counterbalanced do not apply to {ROUTING_TASK} (no look-alike "
-            "competitors); leave them unset"
+            f"--env.condition, --env.counterbalanced and --env.competitor_pool do not apply to {ROUTING_TASK} (no "
+            "look-alike competitors); leave them unset"
         )
     for flag, value in (
         ("--trials", cfg.trials),

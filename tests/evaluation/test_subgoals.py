@@ -182,6 +182,7 @@ def test_the_cue_highlights_the_destination_and_no_cue_shows_the_same_frame_unma
         (["--subgoals=pick,grasp"], "--subgoals='pick,grasp' is not allowed; allowed: pick, inspect, route, place, home"),
         (["--trials=0"], "--trials=0 is not allowed; allowed: an integer >= 1"),
         (["--env.task=PickPlaceRandomBin-v0"], "--env.task='PickPlaceRandomBin-v0' is not allowed; allowed: InstrumentRouting-v0"),
+        (["--env.competitor_pool=augmentation"], "--env.competitor_pool do not apply to InstrumentRouting-v0"),
         (
             ["--env.observation_height=96", "--env.observation_width=128"],
             "reads cameras top 64x80, wrist 64x80, but InstrumentRouting-v0 (rendering both at one size) gives top "

@@ -131,7 +131,7 @@ def _condition_order(conditions) -> list[str]:
 
     def key(c: str) -> tuple:
         plain = c.split(" (")[0]  # right after the plain condition: counterbalanced, augmentation competitors
-        return (grid.index(plain) if plain in grid else len(grid), plain, c != plain)
+        return (grid.index(plain) if plain in grid else len(grid), plain, c != plain, c)
 
     return sorted(set(conditions), key=key)
 
