@@ -154,7 +154,7 @@ def conditional_placement(
 
     from lerobot_condground.core.conditions import ConditionSpec
     from lerobot_condground.core.files import read_json_object
-    from lerobot_condground.evaluation.results import EPISODE_KEY, refuse_rows_outside
+    from lerobot_condground.evaluation.results import EPISODE_KEY, refuse_rows_outside, scene_distribution
 
     path = Path(sweep_dir) / "results.parquet"
     if not path.is_file():
@@ -170,12 +170,10 @@ def conditional_placement(
         raise FileNotFoundError(f"--sweep_dir={sweep_dir!r} has results.parquet but no sweep.json")
     manifest = read_json_object(manifest_path, "Sweep manifest")
     grid = manifest.get("grid") or {}
-    if grid.get("counterbalanced") or grid.get("competitor_pool", "eval") != "eval":
-        kind = (
-            "counterbalanced sweep" if grid.get("counterbalanced") else "sweep among augmentation competitors"
-        )
+    if suffix := scene_distribution(grid):
         raise ValueError(
-            f"--sweep_dir={sweep_dir!r} is a {kind} (another scene distribution); give the plain one"
+            f"--sweep_dir={sweep_dir!r} is a sweep of other scenes than its conditions' plain ones{suffix}; "
+            "give a plain one"
         )
     hashes = {c.get("hash") for c in manifest.get("checkpoints", [])}
     refuse_rows_outside(path, rows, ["checkpoint_hash"], lambda h: h in hashes, "sweep.json")

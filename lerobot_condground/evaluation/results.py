@@ -70,6 +70,16 @@ EPISODE_KEY = ("checkpoint_hash", "task", "condition", "eval_seed", "episode", "
 METADATA_KEY = b"condground"
 
 
+def scene_distribution(grid: dict) -> str:
+    """What sets a sweep's scenes apart from the plain scenes of its conditions, as a suffix to their names
+    ("" for the protocol's own): counterbalanced targets and augmentation competitors are other distributions,
+    which every table keeps apart and the matched-pair analyses refuse."""
+    suffix = " (counterbalanced)" if grid.get("counterbalanced") else ""
+    if grid.get("competitor_pool", "eval") != "eval":
+        suffix += " (augmentation competitors)"
+    return suffix
+
+
 def write_table(rows: list[dict] | pd.DataFrame, path: Path, metadata: dict | None = None) -> None:
     frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
     frame = frame.assign(**{c: None for c in LATER_COLUMNS if c not in frame.columns})

@@ -190,10 +190,10 @@ def test_diagnose_act_modified_files_and_sweep(tiny_checkpoints, tmp_path):
 
     for changed, message in (
         ({"checkpoints": [{"hash": digest}]}, "checkpoint_hash='0000000000000000'.*is not part of the run"),
-        ({"grid": {"task": TASK, "counterbalanced": True}}, "is a counterbalanced sweep"),
+        ({"grid": {"task": TASK, "counterbalanced": True}}, r"plain ones \(counterbalanced\)"),
         (
             {"grid": {"task": TASK, "competitor_pool": "augmentation"}},
-            "is a sweep among augmentation competitors",
+            r"plain ones \(augmentation competitors\)",
         ),
     ):
         (sweep / "sweep.json").write_text(json.dumps({**manifest, **changed}))

@@ -22,6 +22,7 @@ from lerobot_condground.evaluation.results import (
     read_table,
     refuse_contradictions,
     refuse_rows_outside,
+    scene_distribution,
 )
 
 KIND_FILES = {
@@ -35,8 +36,6 @@ KIND_FILES = {
 # The numbers of a comparison's summary row the report shows: anything else in the JSON is not read.
 COMPARISON_NUMBERS = ("seeds", "n", "baseline", "treated", "diff", "diff_low", "diff_high", "p", "cluster_low",
                       "cluster_high", "cluster_p")  # fmt: skip
-COUNTERBALANCED = " (counterbalanced)"
-AUGMENTATION_COMPETITORS = " (augmentation competitors)"
 # One trial of `condground subgoals`: the same weights on the same layout under the same condition and scorer.
 TRIAL_KEY = ("checkpoint_hash", "condition", "subgoal", "layout_seed", "scored_by")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -92,11 +91,8 @@ def _load_sweep(folder: Path, manifest: dict) -> pd.DataFrame:
     )
     _refuse_repeats(folder, frame, EPISODE_KEY, "episode")
     refuse_contradictions(path, frame)
-    if grid.get("counterbalanced"):
-        # Another scene distribution than the plain condition of the same name: its own rows in every table.
-        frame = frame.assign(condition=frame["condition"] + COUNTERBALANCED)
-    if grid.get("competitor_pool", "eval") != "eval":  # the same: competitors no evaluation scene holds
-        frame = frame.assign(condition=frame["condition"] + AUGMENTATION_COMPETITORS)
+    if suffix := scene_distribution(grid):
+        frame = frame.assign(condition=frame["condition"] + suffix)
     return frame.assign(source=str(folder))
 
 

@@ -1,16 +1,18 @@
-"""`standard` at the CPU configuration with every training seed it has, by the protocol: the sweeps `condground
+"""A variant at the CPU configuration with every training seed it has, by the protocol: the sweeps `condground
 compare` wrote (or the same `condground sweep` commands, of one checkpoint or several) anywhere under
-<eval>/<task>_standard_<arm>_s<seed>/, for each --eval given; a checkpoint's step is read off its path.
+<eval>/<task>_standard_<arm>_s<seed>/ (compare names its runs after `--train.variant`, standard, whatever an arm's
+flags set), for each --eval given; a checkpoint's step is read off its path.
 
-    python docs/learning-curve/v3/standard.py --eval=outputs/compare30/eval --seeds=0,1
-    python docs/learning-curve/v3/standard.py --task=PickPlaceRandomBin-v0 --arm=bf16_cl \
+    python docs/learning-curve/v3/variants.py --eval=outputs/compare30/eval --seeds=0,1
+    python docs/learning-curve/v3/variants.py --task=PickPlaceRandomBin-v0 --arm=bf16_cl \
         --eval=outputs/compare33/eval --eval=outputs/compare33/full_mixed
+    python docs/learning-curve/v3/variants.py --variant=full --arm=full_detach --eval=outputs/compare32/eval
 
 Merges the arm's rollouts, checkpoints and stage funnel into levers_rollouts.csv, levers_checkpoints.csv and
 levers_funnel.csv (in place of its earlier rows: a later `condground compare --baseline.rollouts=...` then pairs
-a treated arm's seeds with these), and writes its rows of variants.csv: one per condition, the last three
-checkpoints of every seed pooled, Wilson's interval of the pooled rollouts (which treats them as independent:
-narrower than the runs' spread allows), and each seed's rate.
+a treated arm's seeds with these), and writes the variant's rows of variants.csv: one per condition, the last
+three checkpoints of every seed pooled, Wilson's interval of the pooled rollouts (which treats them as
+independent: narrower than the runs' spread allows), and each seed's rate.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from lerobot_condground.evaluation.statistics import METRICS, cell_metrics, rate
 from lerobot_condground.experiments.compare import merge_csv
 
 HERE = Path(__file__).parent
+VARIANTS = ("standard", "augmentation", "augmentation_attention", "full")
 VARIANT_COLUMNS = [
     "task",
     "variant",
@@ -45,6 +48,7 @@ def main() -> None:
     )
     parser.add_argument("--eval", type=Path, action="append", required=True)
     parser.add_argument("--task", default="PickPlaceFixedBin-v0")
+    parser.add_argument("--variant", default="standard", choices=VARIANTS)
     parser.add_argument("--arm", default="actsize_6k")
     parser.add_argument("--seeds", default="0,1")
     parser.add_argument("--steps", default="4000,5000,6000")
@@ -92,12 +96,12 @@ def main() -> None:
         r = rate(int(f["success"].sum()), len(f))
         by_seed = f.groupby("seed")["success"].mean()
         rows.append(
-            {"task": args.task, "variant": "standard", "condition": condition, "success": r["rate"], "n": r["n"],
+            {"task": args.task, "variant": args.variant, "condition": condition, "success": r["rate"], "n": r["n"],
              "ci_low": r["low"], "ci_high": r["high"], "seeds": len(by_seed),
              "seed_success": " ".join(f"{v:.4f}" for v in by_seed), "source": f"levers_rollouts.csv:{args.arm}"}
         )  # fmt: skip
     table = merge_csv(
-        HERE / "variants.csv", pd.DataFrame(rows, columns=VARIANT_COLUMNS), ["standard"], column="variant"
+        HERE / "variants.csv", pd.DataFrame(rows, columns=VARIANT_COLUMNS), [args.variant], column="variant"
     )
     print(pd.DataFrame(checkpoints).to_string(index=False))
     print(table.to_string(index=False))
