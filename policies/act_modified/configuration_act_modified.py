@@ -46,6 +46,11 @@ BACKBONE_NORMS = ("frozen_batchnorm", "batchnorm", "groupnorm")
 # of the head's attention the camera gets) or the whole memory (A is the head's own attention on the grid, so
 # 1 - <A, M_phi> is small only when the head looks at the image, and at the relevant entity there).
 ATTENTION_NORMALIZATIONS = ("camera", "memory")
+# Which prompts the memory holds: the one the phase picks (the paper: the phase predictor at inference, the label in
+# training) or both, each with its kind, the policy reading the phase off the scene as stock ACT does. With "phase"
+# a wrong prediction feeds the wrong crop: after a missed grasp the predictor, which reads the closed gripper, fed
+# the receptacle's crop with the cube still on the table (docs/learning-curve/v3, thirty-fourth session).
+PROMPT_SELECTIONS = ("phase", "both")
 # Blocks per stage of the basic-block ResNets a narrower backbone can copy.
 NARROW_RESNET_LAYERS = {"resnet18": (2, 2, 2, 2), "resnet34": (3, 4, 6, 3)}
 VARIANTS: dict[str, dict[str, bool]] = {
@@ -103,6 +108,8 @@ class ACTModifiedConfig(ACTConfig):
     # (stop-gradient), so L_phi shapes only the head. Joined with copy-paste, the trained-through head stalled
     # the first action chunk at 1000 steps (docs/learning-curve/v3).
     phase_head_detach: bool = False
+    # One of PROMPT_SELECTIONS; "both" needs no phase predictor (it may still be trained, for L_phi alone).
+    prompt_selection: str = "phase"
 
     # Copy-paste distractor augmentation (a train-only preprocessor step; saved with the checkpoint,
     # so changing these for a loaded checkpoint has no effect on its saved step).
@@ -164,10 +171,14 @@ class ACTModifiedConfig(ACTConfig):
             )
         if not 0.0 <= self.phase_teacher_forcing <= 1.0:
             raise ValueError(f"phase_teacher_forcing={self.phase_teacher_forcing} must be in [0, 1]")
-        if self.use_prompts and not self.use_phase_predictor:
+        if self.prompt_selection not in PROMPT_SELECTIONS:
+            raise ValueError(
+                f"prompt_selection={self.prompt_selection!r} is not allowed; allowed: {', '.join(PROMPT_SELECTIONS)}"
+            )
+        if self.use_prompts and self.prompt_selection == "phase" and not self.use_phase_predictor:
             raise ValueError(
                 "use_prompts=true needs use_phase_predictor=true: the predicted phase picks the object or "
-                "receptacle prompt at inference"
+                "receptacle prompt at inference (or prompt_selection=both, which feeds both)"
             )
         if self.backbone_norm not in BACKBONE_NORMS:
             raise ValueError(

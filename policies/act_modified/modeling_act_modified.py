@@ -158,7 +158,7 @@ class ACTModified(ACT):
         self._prompt_cache: tuple[Tensor, Tensor] | None = None
         self.register_load_state_dict_pre_hook(lambda module, *_: setattr(module, "_prompt_cache", None))
         if config.use_prompts:
-            self.prompt_pos_embed = nn.Embedding(1, dim)
+            self.prompt_pos_embed = nn.Embedding(2 if config.prompt_selection == "both" else 1, dim)
             self.prompt_kind_embed = nn.Embedding(2, dim)  # object or receptacle crop
             self.register_buffer(
                 "prompt_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False
@@ -171,8 +171,9 @@ class ACTModified(ACT):
             self.decoder.layers[-1].multihead_attn = recording
 
     def forward(self, batch: dict[str, Tensor], with_attention: bool = False):
-        """ACT's forward with the prompt token appended to the memory. Returns (actions, (mu, log_sigma_x2),
-        aux) with aux["phase_logits"] (B, 2), aux["phase"] (B,) the phase whose prompt was fed, and with
+        """ACT's forward with the prompt token(s) appended to the memory. Returns (actions, (mu, log_sigma_x2),
+        aux) with aux["phase_logits"] (B, 2), aux["phase"] (B,) the phase whose prompt was fed (none with
+        prompt_selection=both), and with
         `with_attention` aux["attention"] (B, h, w): the supervised head's attention over the camera's
         token grid, averaged over action queries, normalized to sum 1 on the grid (`attention_normalization`
         camera) or left as the head's share of the whole memory (memory)."""
@@ -205,7 +206,10 @@ class ACTModified(ACT):
             if cfg.robot_state_feature:
                 pooled.append(batch[OBS_STATE])
             aux["phase_logits"] = self.phase_head(torch.cat(pooled, dim=1))
-        if cfg.use_prompts:
+        if cfg.use_prompts and cfg.prompt_selection == "both":
+            tokens.extend(self._prompt_tokens(batch))
+            pos_embed.extend(list(self.prompt_pos_embed.weight.unsqueeze(1)))
+        elif cfg.use_prompts:
             phase = self._prompt_phase(batch, aux["phase_logits"])
             aux["phase"] = phase
             tokens.append(self._prompt_token(batch, phase))
@@ -280,14 +284,26 @@ class ACTModified(ACT):
         teacher = torch.rand(label.shape, device=label.device) < self.config.phase_teacher_forcing
         return torch.where(teacher, label, predicted)
 
-    def _prompt_token(self, batch: dict[str, Tensor], phase: Tensor) -> Tensor:
+    def _prompt_crops(self, batch: dict[str, Tensor]) -> list[Tensor]:
         missing = [key for key in (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE) if key not in batch]
         if missing:
             _refuse(
                 f"act_modified with prompts needs {missing} in every observation. The condground env sends them "
                 "(--env.prompts=true, the default); a robot must provide them as observations."
             )
-        crops = [prompt_as_image(batch[key]) for key in (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)]
+        return [prompt_as_image(batch[key]) for key in (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE)]
+
+    def _prompt_tokens(self, batch: dict[str, Tensor]) -> list[Tensor]:
+        """prompt_selection=both: the object's and the receptacle's prompt tokens, each with its kind."""
+        crops = self._prompt_crops(batch)
+        if self.training:
+            features = self._encode_prompts(torch.cat(crops)).view(2, len(crops[0]), -1)
+        else:
+            features = self._episode_prompt_features(crops)
+        return [features[kind] + self.prompt_kind_embed.weight[kind] for kind in (0, 1)]
+
+    def _prompt_token(self, batch: dict[str, Tensor], phase: Tensor) -> Tensor:
+        crops = self._prompt_crops(batch)
         if self.training:
             features = self._encode_prompts(torch.where(phase.view(-1, 1, 1, 1) == 0, crops[0], crops[1]))
         else:

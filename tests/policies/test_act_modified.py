@@ -443,6 +443,32 @@ def test_predicted_phase_picks_the_prompt_at_inference():
         assert not torch.allclose(policy.predict_action_chunk(batch | {fed: other}), reference)
 
 
+@pytest.mark.parametrize("phase_predictor", [False, True])
+def test_both_prompts_are_fed_whatever_the_phase(phase_predictor):
+    """prompt_selection=both: the memory holds both crops' tokens in training and at inference, so each crop
+    moves the action and no phase (label or prediction) decides which one is seen; no phase head is needed."""
+    policy = make_policy(variant="full", prompt_selection="both", use_phase_predictor=phase_predictor)
+    assert hasattr(policy.model, "phase_head") == phase_predictor
+    policy.train()
+    batch = make_batch()
+    loss, info = policy(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and ("phase_loss" in info) == phase_predictor
+    assert policy.model.prompt_pos_embed.weight.grad.abs().sum(-1).gt(0).all(), "both prompt positions train"
+    policy.eval()
+    obs = observation(batch)
+    reference = policy.predict_action_chunk(obs)
+    for key in (OBS_PROMPT_OBJECT, OBS_PROMPT_RECEPTACLE):
+        changed = policy.predict_action_chunk(obs | {key: torch.zeros_like(obs[key])})
+        assert not torch.allclose(changed, reference), f"{key} is not read"
+    if phase_predictor:  # the head's prediction no longer picks a crop
+        head = policy.model.phase_head[-1]
+        with torch.no_grad():
+            head.weight.zero_()
+            head.bias.copy_(torch.tensor([-10.0, 10.0]))
+        assert torch.equal(policy.predict_action_chunk(obs), reference)
+
+
 def test_missing_labels_name_the_keys_and_a_variant_that_works():
     features = dataset_features()
     del features[OBS_PROMPT_OBJECT], features[OBS_PROMPT_RECEPTACLE]
@@ -469,6 +495,7 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (dict(variant="best"), "variant 'best'"),
         (dict(attention_head=4), "attention_head=4"),
         (dict(variant="standard", use_prompts=True), "use_phase_predictor"),
+        (dict(prompt_selection="random"), "prompt_selection='random'.*phase, both"),
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
         (
