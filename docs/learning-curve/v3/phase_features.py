@@ -44,11 +44,9 @@ def frames(checkpoint: str):
     for start in range(0, len(indices), 64):
         batch = torch.utils.data.default_collate([dataset[i] for i in indices[start : start + 64]])
         processed = preprocessor(batch)
-        image = processed[camera]
-        if cfg.channels_last:
-            image = image.contiguous(memory_format=torch.channels_last)
+        # The backbone's own pre-hook puts the frames in channels-last order; bf16 is lerobot-train's, not the model's.
         with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.use_amp):
-            maps.append(model.backbone(image)["feature_map"].float().flatten(2))
+            maps.append(model.backbone(processed[camera])["feature_map"].float().flatten(2))
         states.append(processed["observation.state"].float())
         labels.append(batch["observation.phase"].reshape(-1).long())
         episodes.append(batch["episode_index"].reshape(-1))
