@@ -61,9 +61,10 @@ def act_checkpoint(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_checkpoints(tmp_path_factory) -> list[Path]:
-    """Two act_modified/full checkpoints (training seeds 0 and 1), random weights, 96x128 camera."""
+    """Two act_modified/full checkpoints (training seeds 0 and 1), random weights, 96x128 camera, with the
+    paper's phase predictor (the most a diagnosis has to read)."""
     root = tmp_path_factory.mktemp("checkpoints")
-    return [make_checkpoint(root / f"seed{seed}", seed=seed) for seed in (0, 1)]
+    return [make_checkpoint(root / f"seed{seed}", seed=seed, phase_predictor=True) for seed in (0, 1)]
 
 
 @pytest.fixture(scope="session")

@@ -36,10 +36,12 @@ def make_checkpoint(
     seed: int = 0,
     policy_type: str = "act_modified",
     cameras: tuple[str, ...] = ("top",),
+    phase_predictor: bool | None = None,
 ) -> Path:
     """A small act_modified (or, with policy_type="act", stock ACT) checkpoint with random weights, saved
     the way lerobot-train saves one (config, weights, processors): what the diagnosis commands load.
-    It has not learned anything. Stock ACT reads `cameras` (the routing env renders top and wrist)."""
+    It has not learned anything. Stock ACT reads `cameras` (the routing env renders top and wrist);
+    `phase_predictor` overrides the variant's (True: the paper's `full`, whose predictor picks the prompt)."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors
@@ -84,7 +86,10 @@ def make_checkpoint(
         cameras_and_state = {k: features[k] for k in (*images, "observation.state")}
         policy = ACTPolicy(ACTConfig(input_features=cameras_and_state, **small))
     else:
-        policy = ACTModifiedPolicy(ACTModifiedConfig(variant=variant, input_features=features, **small))
+        cfg = ACTModifiedConfig(
+            variant=variant, use_phase_predictor=phase_predictor, input_features=features, **small
+        )
+        policy = ACTModifiedPolicy(cfg)
     stats = {
         **{k: {"mean": torch.full((3, 1, 1), 0.45), "std": torch.full((3, 1, 1), 0.25)} for k in images},
         "observation.state": {"mean": torch.zeros(7), "std": torch.ones(7)},

@@ -117,7 +117,7 @@ def test_fit_reports_the_supervised_heads_camera_share_and_the_predicted_phase(r
 
     from lerobot_condground.policies.act_modified.modeling_act_modified import ACTModifiedPolicy
 
-    checkpoint = make_checkpoint(tmp_path / "full", variant="full", seed=3)
+    checkpoint = make_checkpoint(tmp_path / "full", variant="full", seed=3, phase_predictor=True)
     out = tmp_path / "fit"
     run_cli(
         "condground", "fit", f"--policy.path={checkpoint}", f"--dataset.root={recorded_dataset}",

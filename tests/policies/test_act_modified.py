@@ -2,6 +2,7 @@
 loss, prompt selection, checkpoints and warm starts."""
 
 import copy
+import json
 
 import pytest
 import torch
@@ -103,7 +104,7 @@ def test_every_variant_trains_and_acts(variant):
     expected = {"l1_loss", "kld_loss"}
     if variant in ("augmentation_attention", "full"):
         expected |= {"attention_on_relevant", "attention_on_distractors"}
-    if variant == "full":
+    if VARIANTS[variant]["use_phase_predictor"]:
         expected |= {"phase_loss", "phase_accuracy"}
     assert set(info) == expected
     policy.reset()
@@ -244,7 +245,9 @@ def test_every_loss_term_holds_under_bf16_autocast():
     """lerobot-train --policy.use_amp=true runs forward under bf16 autocast: the recomputed attention softmax,
     the phase cross-entropy, the attention terms and the prompt encoding must stay within bf16 rounding of
     fp32 (dropout off, so both passes compute the same function)."""
-    policy = make_policy(variant="full", dropout=0.0, backbone_norm="batchnorm", backbone_width=32)
+    policy = make_policy(
+        variant="full", use_phase_predictor=True, dropout=0.0, backbone_norm="batchnorm", backbone_width=32
+    )
     policy.train()
     batch = make_batch()
     torch.manual_seed(1)  # the same CVAE sample in both passes
@@ -426,7 +429,7 @@ def test_empty_masks_give_a_finite_loss():
 
 
 def test_predicted_phase_picks_the_prompt_at_inference():
-    policy = make_policy(variant="full")
+    policy = make_policy(variant="full", use_phase_predictor=True)
     policy.eval()
     head = policy.model.phase_head[-1]
     batch = observation(make_batch())
@@ -494,7 +497,7 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
     [
         (dict(variant="best"), "variant 'best'"),
         (dict(attention_head=4), "attention_head=4"),
-        (dict(variant="standard", use_prompts=True), "use_phase_predictor"),
+        (dict(variant="standard", use_prompts=True, prompt_selection="phase"), "use_phase_predictor"),
         (dict(prompt_selection="random"), "prompt_selection='random'.*phase, both"),
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
@@ -540,8 +543,34 @@ def test_variant_presets_can_be_overridden():
         False,
         True,
         True,
-        True,
+        False,
     )
+
+
+@pytest.mark.parametrize(
+    "overrides, selection",
+    [
+        (dict(), "both"),  # full's settled default: both crops, no phase predictor
+        (dict(use_phase_predictor=True), "phase"),  # the paper's: the predictor picks the crop
+        (dict(use_phase_predictor=True, prompt_selection="both"), "both"),
+        (dict(variant="augmentation", use_phase_predictor=True), "phase"),
+    ],
+)
+def test_prompt_selection_follows_the_phase_predictor_unless_given(overrides, selection):
+    assert ACTModifiedConfig(**SMALL | overrides).prompt_selection == selection
+
+
+def test_a_checkpoint_saved_before_prompt_selection_loads_as_it_was_trained(tmp_path):
+    """Configs written before the field existed hold a phase predictor and no prompt_selection: they must
+    load with the predictor picking the crop, as they were trained, not with the later default."""
+    policy = make_policy(variant="full", use_phase_predictor=True)
+    policy.save_pretrained(tmp_path)
+    config = json.loads((tmp_path / "config.json").read_text())
+    assert config.pop("prompt_selection") == "phase"
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    loaded = ACTModifiedPolicy.from_pretrained(tmp_path)
+    assert loaded.config.prompt_selection == "phase" and hasattr(loaded.model, "phase_head")
+    assert torch.equal(loaded.model.prompt_pos_embed.weight, policy.model.prompt_pos_embed.weight)
 
 
 def test_checkpoint_round_trip_gives_identical_actions(tmp_path):
@@ -610,7 +639,7 @@ def test_warm_start_from_a_stock_act_checkpoint(tmp_path, monkeypatch):
         )
     )
     act.save_pretrained(tmp_path / "act")
-    warm = make_policy(variant="full", init_from_act=str(tmp_path / "act"))
+    warm = make_policy(variant="full", use_phase_predictor=True, init_from_act=str(tmp_path / "act"))
     ours = warm.state_dict()
     for name, value in act.state_dict().items():
         assert torch.equal(ours[name], value), name
