@@ -21,6 +21,7 @@ from lerobot_condground.core.training import (
     CPU_EPISODES,
     CPU_FRAME_SIZE,
     CPU_STEPS,
+    native_bf16,
     policy_flags,
 )
 from lerobot_condground.core.ur3e import check_servo
@@ -97,6 +98,11 @@ TRAIN_SAMPLES_PER_CORE_S = {
     "cpu": {"standard": 16.0, "augmentation": 15.4, "augmentation_attention": 15.3, "full": 12.4},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
 }
+# The same on a CPU that multiplies bf16 natively, where the CPU preset trains under bf16 autocast
+# (core.training.speed_flags): the 6000-step runs of docs/learning-curve/v3 on the Zen 5 EPYC, two side by
+# side, whole-run means (standard 2.37 steps/s, augmentation 1.82, full 1.81; augmentation_attention not
+# timed there, taken as augmentation).
+TRAIN_SAMPLES_PER_CORE_S_BF16 = {"standard": 37.9, "augmentation": 29.1, "augmentation_attention": 29.1, "full": 29.0}
 # The quickstart trained this model on both cores' two torch threads at 28.7 samples/s (twenty-first session, steps
 # 300-3000, docs/quickstart.md), against 16.0 for each of two one-thread runs side by side: a run on t threads goes
 # t**0.84 times as fast (the smaller model before 2026-12-04: 60 against 41, t**0.55).
@@ -408,9 +414,10 @@ def _final_checkpoint(run: Path, steps: int) -> Path:
     return get_step_checkpoint_dir(run, steps, steps) / PRETRAINED_MODEL_DIR
 
 
-def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
+def plan(cfg: ReproduceConfig, cores: int | None = None, bf16: bool | None = None) -> list[Stage]:
     """Every stage in the order it should run: Task 2 (the paper's harder task) first, the paper's three
-    methods of each task before the variants it does not report (augmentation_attention)."""
+    methods of each task before the variants it does not report (augmentation_attention). `bf16`: whether the
+    CPU preset's training runs under bf16 autocast (default: where this CPU multiplies bf16 natively)."""
     from lerobot_condground.policies.act_modified.configuration_act_modified import VARIANTS
 
     cores = cores or usable_cores()
@@ -428,10 +435,12 @@ def plan(cfg: ReproduceConfig, cores: int | None = None) -> list[Stage]:
     recorded: set[str] = set()
     demos = f"{cfg.record.drift_std} rad drift" if cfg.record.drift_std else "clean"
 
+    bf16 = native_bf16() if bf16 is None else bf16
+    cpu_bf16 = scale == "cpu" and cfg.train.device == "cpu" and bf16
+    rates = TRAIN_SAMPLES_PER_CORE_S_BF16 if cpu_bf16 else TRAIN_SAMPLES_PER_CORE_S[scale]
+
     def train_s(variant: str, steps: int) -> float:
-        return (
-            steps * cfg.train.batch_size / (TRAIN_SAMPLES_PER_CORE_S[scale][variant] * share**THREAD_SCALING)
-        )
+        return steps * cfg.train.batch_size / (rates[variant] * share**THREAD_SCALING)
 
     record_s = RECORD_CORE_S_PER_EPISODE[scale] / min(cores, 2)
     takeover = cfg.takeover.episodes
