@@ -102,7 +102,12 @@ TRAIN_SAMPLES_PER_CORE_S = {
 # (core.training.speed_flags): the 6000-step runs of docs/learning-curve/v3 on the Zen 5 EPYC, two side by
 # side, whole-run means (standard 2.37 steps/s, augmentation 1.82, full 1.81; augmentation_attention not
 # timed there, taken as augmentation).
-TRAIN_SAMPLES_PER_CORE_S_BF16 = {"standard": 37.9, "augmentation": 29.1, "augmentation_attention": 29.1, "full": 29.0}
+TRAIN_SAMPLES_PER_CORE_S_BF16 = {
+    "standard": 37.9,
+    "augmentation": 29.1,
+    "augmentation_attention": 29.1,
+    "full": 29.0,
+}
 # The quickstart trained this model on both cores' two torch threads at 28.7 samples/s (twenty-first session, steps
 # 300-3000, docs/quickstart.md), against 16.0 for each of two one-thread runs side by side: a run on t threads goes
 # t**0.84 times as fast (the smaller model before 2026-12-04: 60 against 41, t**0.55).
