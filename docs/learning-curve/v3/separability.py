@@ -16,7 +16,8 @@ With `--camera_codec=video` every frame first goes through the dataset's video c
 training frames' look; the pastes are then drawn on decoded frames, as in training), and
 `--copy_paste_codec=video` sends the pastes through it too. `--checkpoints` repeats the competitor test on
 each policy's own backbone: the feature vector of the image token whose cell holds the object (what the
-transformer reads), at the checkpoint's 96x128 frames (`--sizes=` skips the pixel test).
+transformer reads), at the checkpoint's 96x128 frames (`--sizes=` skips the pixel test); `--paste_tokens`
+adds the pastes' tokens (the look-alikes copy-paste trains on, drawn on the clean frames).
 
 A kind the classifier cannot tell from the target at a frame size is a look-alike the policy cannot tell
 either from that frame alone (a classifier on the raw patch is a rough bound on what is in the pixels, not
@@ -79,9 +80,11 @@ def render(task: str, condition: str, size: tuple[int, int], layouts: int, codec
     return frames
 
 
-def backbone_tokens(checkpoint: str, task: str, condition: str, layouts: int):
+def backbone_tokens(checkpoint: str, task: str, condition: str, layouts: int, paste_categories=()):
     """(feature map (C, h, w) of the policy's backbone, segmentation, entity table) of each layout's first
-    frame, the frame going through the checkpoint's own preprocessing as in lerobot-eval."""
+    frame, the frame going through the checkpoint's own preprocessing as in lerobot-eval. With paste
+    categories (a clean condition): also {paste_<category>: [(feature map, paste mask)]}, the same frames
+    with one object-role paste of that category each, drawn on the render before preprocessing as in training."""
     from lerobot_condground.envs.configs import CondGroundEnvConfig
     from lerobot_condground.evaluation.checkpoints import load_policy
     from lerobot_condground.evaluation.rollout import policy_batch
@@ -92,17 +95,30 @@ def backbone_tokens(checkpoint: str, task: str, condition: str, layouts: int):
     env = env_cfg.make_env()
     loaded = load_policy(checkpoint, env_cfg)
     loaded.policy.eval()
-    out = []
-    for seed in range(SEED_OFFSET, SEED_OFFSET + layouts):
-        obs, _ = env.reset(seed=seed)
+
+    def features(obs) -> np.ndarray:
         batch = policy_batch(loaded, [obs], [env])
         with torch.inference_mode():
-            features = loaded.policy.model.backbone(batch["observation.images.top"])["feature_map"][0]
-        out.append(
-            (features.float().numpy(), env.unwrapped.render_segmentation(), env.unwrapped.entity_table())
-        )
+            return (
+                loaded.policy.model.backbone(batch["observation.images.top"])["feature_map"][0]
+                .float()
+                .numpy()
+            )
+
+    out, observations = [], []
+    for seed in range(SEED_OFFSET, SEED_OFFSET + layouts):
+        obs, _ = env.reset(seed=seed)
+        observations.append(obs)
+        out.append((features(obs), env.unwrapped.render_segmentation(), env.unwrapped.entity_table()))
+    pasted = {}
+    for category in paste_categories:
+        frames = [(o["pixels"]["top"], seg) for o, (_, seg, _) in zip(observations, out, strict=True)]
+        pasted[f"paste_{category}"] = [
+            (features({**observations[k], "pixels": {**observations[k]["pixels"], "top": rgb}}), mask)
+            for k, rgb, mask in one_paste_each(frames, category, "none", wanted=layouts)
+        ]
     env.close()
-    return out
+    return (out, pasted) if paste_categories else out
 
 
 def token(features: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
@@ -144,35 +160,37 @@ def competitors(frames, cut) -> tuple[list[np.ndarray], dict[str, list[np.ndarra
     return targets, kinds
 
 
-def pastes(args, size, side: int, wanted: int) -> dict[str, list[np.ndarray]]:
-    """Object-role pastes of each category on the clean first frames, one a frame (a receptacle-role paste is
-    several times the cube's area and is dropped)."""
-    clean = render(args.task, "clean", size, args.layouts, args.camera_codec)
-    images = torch.from_numpy(np.stack([c[0] for c in clean])).permute(0, 3, 1, 2).float() / 255
-    seg = torch.from_numpy(np.stack([c[1] for c in clean]))
+def one_paste_each(frames, category: str, codec: str, wanted: int):
+    """(layout index, rgb with one object-role paste of the category, the paste's mask) from (rgb, segmentation)
+    first frames, until `wanted` (a receptacle-role paste is several times the cube's area and is dropped)."""
+    images = torch.from_numpy(np.stack([f[0] for f in frames])).permute(0, 3, 1, 2).float() / 255
+    seg = torch.from_numpy(np.stack([f[1] for f in frames]))
     cube_area = (seg == TARGET_OBJECT).flatten(1).sum(1).float().median().item()
+    found = 0
+    for seed in range(20):
+        step = CopyPasteDistractorStep(
+            prob=1.0, min_count=1, max_count=1, categories=[category], seed=seed, codec=codec
+        )
+        pasted, labels = step.augment(images, seg)
+        for k in range(len(frames)):
+            mask = (labels[k] == SYNTHETIC_DISTRACTOR).numpy()
+            if 0 < mask.sum() < 2.5 * cube_area:
+                found += 1
+                yield k, (pasted[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), mask
+                if found >= wanted:
+                    return
+
+
+def pastes(args, size, side: int, wanted: int) -> dict[str, list[np.ndarray]]:
+    """Patches around object-role pastes of each category on the clean first frames, one a frame."""
+    clean = [(rgb, seg) for rgb, seg, _ in render(args.task, "clean", size, args.layouts, args.camera_codec)]
     kinds = {}
     for category in CATEGORIES:
-        found = []
-        for seed in range(20):
-            step = CopyPasteDistractorStep(
-                prob=1.0,
-                min_count=1,
-                max_count=1,
-                categories=[category],
-                seed=seed,
-                codec=args.copy_paste_codec,
-            )
-            pasted, labels = step.augment(images, seg)
-            for k in range(len(clean)):
-                mask = (labels[k] == SYNTHETIC_DISTRACTOR).numpy()
-                if 0 < mask.sum() < 2.5 * cube_area:
-                    q = patch((pasted[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), mask, side)
-                    if q is not None:
-                        found.append(q)
-            if len(found) >= wanted:
-                break
-        kinds[f"paste_{category}"] = found
+        found = (
+            patch(rgb, mask, side)
+            for _, rgb, mask in one_paste_each(clean, category, args.copy_paste_codec, wanted)
+        )
+        kinds[f"paste_{category}"] = [q for q in found if q is not None]
     return kinds
 
 
@@ -189,6 +207,9 @@ def main():
     )
     parser.add_argument(
         "--checkpoints", nargs="*", default=[], help="also probe these policies' backbone tokens"
+    )
+    parser.add_argument(
+        "--paste_tokens", action="store_true", help="with --checkpoints: also the pastes' tokens"
     )
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
@@ -216,7 +237,12 @@ def main():
         add(text, "pixels", f"patch_{side}px", targets, kinds | pastes(args, size, side, len(targets)))
     for checkpoint in args.checkpoints:
         frames = {m: backbone_tokens(checkpoint, args.task, f"object_{m}_1", args.layouts) for m in matches}
-        add("96x128", checkpoint, "backbone_token", *competitors(frames, token))
+        targets, kinds = competitors(frames, token)
+        if args.paste_tokens:
+            _, pasted = backbone_tokens(checkpoint, args.task, "clean", args.layouts, CATEGORIES)
+            for kind, samples in pasted.items():
+                kinds[kind] = [q for q in (token(f, mask) for f, mask in samples) if q is not None]
+        add("96x128", checkpoint, "backbone_token", targets, kinds)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     pd.DataFrame(rows).to_csv(args.output, index=False, float_format="%.4f")
 
