@@ -495,7 +495,8 @@ def test_control_interface_streams_servoj_and_the_arm_follows(control_fake):
     assert out["running"] and out["fake"] and out["connected"]
     assert out["status"] == 3  # robot_status_bits: power on | program running
     assert out["ctor_s"] < 2.0
-    assert out["oks"] == 500 and 0.95 < out["stream_s"] < 1.3
+    # Paced at 500 Hz (not a burst); the upper bound leaves room for overrun cycles on a loaded 2-core machine.
+    assert out["oks"] == 500 and 0.95 < out["stream_s"] < 1.6
     # The arm moves with the stream (lagging the set point), reaches the held target, and stays after servoStop.
     firsts = [q[0] for q in out["seen"]]
     assert firsts == sorted(firsts) and q0[0] < firsts[0] < firsts[-1] < target[0]
@@ -506,7 +507,7 @@ def test_control_interface_streams_servoj_and_the_arm_follows(control_fake):
     servoj = [e for e in st["servo_log"] if e["cmd"] == "servoj"]
     assert st["servoj_count"] == len(servoj) == 500
     assert servoj[-1]["q"] == pytest.approx(target) and st["servo_target"] == pytest.approx(target)
-    assert 0.9 < servoj[-1]["t"] - servoj[0]["t"] < 1.3  # streamed at 500 Hz, not in a burst
+    assert 0.9 < servoj[-1]["t"] - servoj[0]["t"] < 1.6  # streamed at 500 Hz, not in a burst
     assert st["servo_lookahead"] == 0.1 and st["servo_gain"] == 300 and st["servo_time"] == 0.002
     assert st["actual_q"] == pytest.approx(target, abs=1e-3)
     assert [e["cmd"] for e in st["servo_log"] if e["cmd"] != "servoj"] == ["script_start", "servo_stop"]
