@@ -6,7 +6,8 @@ follows the cube: r near 1; one that ignores the image: r near 0, the same chunk
 
     python docs/learning-curve/v3/first_chunk_check.py --task=PickPlaceFixedBin-v0 --layouts=20 CHECKPOINT_DIR [...]
 
---camera_codec=video shows the policy its frames through the dataset's video codec (`--env.camera_codec`).
+--camera_codec=video shows the policy its frames through the dataset's video codec (`--env.camera_codec`);
+--seed_offset=0 checks the first layouts a recording draws (its training demonstrations' own, seed 0 on) instead.
 """
 
 import argparse
@@ -27,6 +28,7 @@ parser.add_argument("checkpoints", nargs="+")
 parser.add_argument("--task", default="PickPlaceFixedBin-v0")
 parser.add_argument("--layouts", type=int, default=20)
 parser.add_argument("--camera_codec", default="none")
+parser.add_argument("--seed_offset", type=int, default=SEED_OFFSET)
 args = parser.parse_args()
 torch.set_num_threads(1)
 height, width = CPU_FRAME_SIZE
@@ -41,7 +43,7 @@ env = env_cfg.make_env()
 for checkpoint in args.checkpoints:
     loaded = load_policy(checkpoint, env_cfg)
     bearings, turns = [], []
-    for seed in range(SEED_OFFSET, SEED_OFFSET + args.layouts):
+    for seed in range(args.seed_offset, args.seed_offset + args.layouts):
         obs, _ = env.reset(seed=seed)
         cube = env.unwrapped.entity_pose(1)[0] - env.unwrapped.data.body("ur3e_base").xpos
         loaded.policy.reset()
@@ -54,6 +56,6 @@ for checkpoint in args.checkpoints:
     r = np.corrcoef(bearings, turns)[0, 1]
     slope = np.polyfit(bearings, turns, 1)[0]
     print(
-        f"{checkpoint} (camera_codec={args.camera_codec}): r = {r:.2f}, slope {slope:.2f} rad/rad, base joint at the chunk's end "
+        f"{checkpoint} (camera_codec={args.camera_codec}, layouts {args.seed_offset}+): r = {r:.2f}, slope {slope:.2f} rad/rad, base joint at the chunk's end "
         f"{np.min(turns):+.2f}..{np.max(turns):+.2f} rad for bearings {np.min(bearings):+.2f}..{np.max(bearings):+.2f}"
     )

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# A 1000-step probe (issue 55): the CPU configuration's 6000-step cosine run of one arm on Task 1, stopped once its
+# A 1000-step probe (issue 55): the CPU configuration's 6000-step cosine run of one arm on Task 1 (or $TASK), stopped once its
 # 1000-step checkpoint is saved, then the first-chunk check on 20 held-out layouts, raw and through the codec.
 #   bash docs/learning-curve/v3/probe_1000.sh NAME DATA_ROOT SEED FLAGS...
 set -uo pipefail
 source .venv/bin/activate
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 MUJOCO_GL=egl HF_HUB_OFFLINE=1
 NAME=$1; DATA=$2; SEED=$3; shift 3
-T=PickPlaceFixedBin-v0
+T=${TASK:-PickPlaceFixedBin-v0}  # TASK=PickPlaceRandomBin-v0 for Task 2
 OUT=outputs/probe_1000/$NAME
 CK=$OUT/checkpoints/001000/pretrained_model
 mkdir -p outputs/probe_1000
