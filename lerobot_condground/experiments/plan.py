@@ -97,16 +97,11 @@ PRESETS: dict[str, dict] = {
 TRAIN_SAMPLES_PER_CORE_S = {
     "cpu": {"standard": 16.0, "augmentation": 15.4, "augmentation_attention": 15.3, "full": 12.4},
     "paper": {"standard": 1.8, "augmentation": 1.7, "augmentation_attention": 1.7, "full": 1.6},
-}
-# The same on a CPU that multiplies bf16 natively, where the CPU preset trains under bf16 autocast
-# (core.training.speed_flags): the 6000-step runs of docs/learning-curve/v3 on the Zen 5 EPYC, two side by
-# side, whole-run means (standard 2.37 steps/s, augmentation 1.82, full 1.81; augmentation_attention not
-# timed there, taken as augmentation).
-TRAIN_SAMPLES_PER_CORE_S_BF16 = {
-    "standard": 37.9,
-    "augmentation": 29.1,
-    "augmentation_attention": 29.1,
-    "full": 29.0,
+    # cpu on a CPU that multiplies bf16 natively, where the preset trains under bf16 autocast
+    # (core.training.speed_flags): the 6000-step runs of docs/learning-curve/v3 on the Zen 5 EPYC, two side by
+    # side, whole-run means (standard 2.37 steps/s, augmentation 1.82, full 1.81; augmentation_attention not
+    # timed there, taken as augmentation).
+    "cpu_bf16": {"standard": 37.9, "augmentation": 29.1, "augmentation_attention": 29.1, "full": 29.0},
 }
 # The quickstart trained this model on both cores' two torch threads at 28.7 samples/s (twenty-first session, steps
 # 300-3000, docs/quickstart.md), against 16.0 for each of two one-thread runs side by side: a run on t threads goes
@@ -442,7 +437,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None, bf16: bool | None = Non
 
     bf16 = native_bf16() if bf16 is None else bf16
     cpu_bf16 = scale == "cpu" and cfg.train.device == "cpu" and bf16
-    rates = TRAIN_SAMPLES_PER_CORE_S_BF16 if cpu_bf16 else TRAIN_SAMPLES_PER_CORE_S[scale]
+    rates = TRAIN_SAMPLES_PER_CORE_S["cpu_bf16" if cpu_bf16 else scale]
 
     def train_s(variant: str, steps: int) -> float:
         return steps * cfg.train.batch_size / (rates[variant] * share**THREAD_SCALING)

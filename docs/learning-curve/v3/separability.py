@@ -81,10 +81,11 @@ def render(task: str, condition: str, size: tuple[int, int], layouts: int, codec
 
 
 def backbone_tokens(checkpoint: str, task: str, condition: str, layouts: int, paste_categories=()):
-    """(feature map (C, h, w) of the policy's backbone, segmentation, entity table) of each layout's first
+    """[(feature map (C, h, w) of the policy's backbone, segmentation, entity table)] of each layout's first
     frame, the frame going through the checkpoint's own preprocessing as in lerobot-eval. With paste
-    categories (a clean condition): also {paste_<category>: [(feature map, paste mask)]}, the same frames
-    with one object-role paste of that category each, drawn on the render before preprocessing as in training."""
+    categories (a clean condition), the second item {paste_<category>: [(feature map, paste mask)]} holds the
+    same frames with one object-role paste of that category each, drawn on the render before preprocessing as in
+    training."""
     from lerobot_condground.envs.configs import CondGroundEnvConfig
     from lerobot_condground.evaluation.checkpoints import load_policy
     from lerobot_condground.evaluation.rollout import policy_batch
@@ -118,7 +119,7 @@ def backbone_tokens(checkpoint: str, task: str, condition: str, layouts: int, pa
             for k, rgb, mask in one_paste_each(frames, category, "none", wanted=layouts)
         ]
     env.close()
-    return (out, pasted) if paste_categories else out
+    return out, pasted
 
 
 def token(features: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
@@ -174,7 +175,8 @@ def one_paste_each(frames, category: str, codec: str, wanted: int):
         pasted, labels = step.augment(images, seg)
         for k in range(len(frames)):
             mask = (labels[k] == SYNTHETIC_DISTRACTOR).numpy()
-            if 0 < mask.sum() < 2.5 * cube_area:
+            # visible enough to cut (`patch`, `token`) and no larger than an object
+            if mask.sum() * (96 / mask.shape[0]) ** 2 >= MIN_PIXELS and mask.sum() < 2.5 * cube_area:
                 found += 1
                 yield k, (pasted[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), mask
                 if found >= wanted:
@@ -186,11 +188,10 @@ def pastes(args, size, side: int, wanted: int) -> dict[str, list[np.ndarray]]:
     clean = [(rgb, seg) for rgb, seg, _ in render(args.task, "clean", size, args.layouts, args.camera_codec)]
     kinds = {}
     for category in CATEGORIES:
-        found = (
+        kinds[f"paste_{category}"] = [
             patch(rgb, mask, side)
             for _, rgb, mask in one_paste_each(clean, category, args.copy_paste_codec, wanted)
-        )
-        kinds[f"paste_{category}"] = [q for q in found if q is not None]
+        ]
     return kinds
 
 
@@ -236,12 +237,14 @@ def main():
         targets, kinds = competitors(frames, functools.partial(patch, side=side))
         add(text, "pixels", f"patch_{side}px", targets, kinds | pastes(args, size, side, len(targets)))
     for checkpoint in args.checkpoints:
-        frames = {m: backbone_tokens(checkpoint, args.task, f"object_{m}_1", args.layouts) for m in matches}
+        frames = {
+            m: backbone_tokens(checkpoint, args.task, f"object_{m}_1", args.layouts)[0] for m in matches
+        }
         targets, kinds = competitors(frames, token)
         if args.paste_tokens:
             _, pasted = backbone_tokens(checkpoint, args.task, "clean", args.layouts, CATEGORIES)
             for kind, samples in pasted.items():
-                kinds[kind] = [q for q in (token(f, mask) for f, mask in samples) if q is not None]
+                kinds[kind] = [token(f, mask) for f, mask in samples]
         add("96x128", checkpoint, "backbone_token", targets, kinds)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     pd.DataFrame(rows).to_csv(args.output, index=False, float_format="%.4f")
