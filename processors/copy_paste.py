@@ -61,6 +61,7 @@ CONFIG_FIELDS = (
     "sprite_scale",
     "placement_box",
     "codec",
+    "warmup_steps",
 )
 # Pixels around a paste that take the codec's output too: 4:2:0 chroma spreads an edge over two of them.
 CODEC_MARGIN = 2
@@ -132,6 +133,10 @@ class CopyPasteParams:
     placement_box: list[float] = field(default_factory=lambda: [0.25, 0.05, 0.95, 0.95])
     # none: pastes as drawn; video: pasted frames through the dataset's video codec (see the module docstring).
     codec: str = "none"
+    # Training batches over which `prob` ramps up linearly from 0. A backbone trained from scratch has to find the
+    # few pixels of the target from the action loss alone, and pastes from the first step drowned that signal on
+    # Task 2 (docs/learning-curve/v3); the paper's backbone starts from ImageNet weights.
+    warmup_steps: int = 0
 
     def __post_init__(self):
         _check_key("camera_key", self.camera_key)
@@ -141,6 +146,7 @@ class CopyPasteParams:
         _check_integer("max_count", self.max_count, 1, MAX_COUNT)
         _check_integer("min_count", self.min_count, 0, self.max_count)
         _check_integer("seed", self.seed, 0, 2**63 - 1)
+        _check_integer("warmup_steps", self.warmup_steps, 0, 10**9)
         if (
             isinstance(self.sprite_scale, bool)
             or not isinstance(self.sprite_scale, int | float)
@@ -186,11 +192,18 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
     _canvases: dict = field(default_factory=dict, init=False, repr=False)
     _shading: torch.Tensor | None = field(default=None, init=False, repr=False)
     _generator: torch.Generator = field(init=False, repr=False)
+    _batches: int = field(default=0, init=False, repr=False)  # training batches seen, for warmup_steps
 
     def __post_init__(self):
         super().__post_init__()
         _check_key("segmentation_key", self.segmentation_key)
         self._generator = torch.Generator().manual_seed(self.seed)
+
+    def current_prob(self) -> float:
+        """The paste probability of the next training batch (`prob` once `warmup_steps` batches have passed)."""
+        if self._batches >= self.warmup_steps:
+            return self.prob
+        return self.prob * self._batches / self.warmup_steps
 
     # ------------------------------------------------------------------ ProcessorStep interface
     def __call__(self, transition: EnvTransition) -> EnvTransition:
@@ -205,7 +218,10 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
                     f"condground_copy_paste needs observation key {key!r}; the batch has "
                     f"{sorted(observation)}"
                 )
-        images, segmentation = self.augment(observation[self.camera_key], observation[self.segmentation_key])
+        images, segmentation = self.augment(
+            observation[self.camera_key], observation[self.segmentation_key], prob=self.current_prob()
+        )
+        self._batches += 1
         new = dict(transition)
         new[TransitionKey.OBSERVATION] = {
             **observation,
@@ -221,9 +237,19 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
         return config
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        return {"sprites": self._sprite_bank().clone(), "generator_state": self._generator.get_state()}
+        return {
+            "sprites": self._sprite_bank().clone(),
+            "generator_state": self._generator.get_state(),
+            "batches": torch.tensor(self._batches),
+        }
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        if "batches" not in state and self.warmup_steps:
+            raise ValueError(
+                f"condground_copy_paste has warmup_steps={self.warmup_steps} but its saved state has no batch "
+                "count (saved before warmup_steps existed); allowed: warmup_steps=0 for such a state"
+            )
+        self._batches = int(state.get("batches", 0))
         self._bank = state["sprites"].detach().to("cpu", torch.float32).contiguous()
         self._canvases.clear()
         self._shading = None
@@ -236,9 +262,12 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
 
     # ------------------------------------------------------------------ augmentation
     @torch.no_grad()
-    def augment(self, images: torch.Tensor, segmentation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def augment(
+        self, images: torch.Tensor, segmentation: torch.Tensor, prob: float | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Pastes distractors into float frames (B, 3, H, W) in [0, 1] with label maps (B, H, W); an
-        unbatched (3, H, W) / (H, W) pair is accepted too. Returns new tensors, inputs are untouched."""
+        unbatched (3, H, W) / (H, W) pair is accepted too. Returns new tensors, inputs are untouched.
+        `prob` (default: the step's `prob`) is the chance that a sample is augmented."""
         unbatched = images.dim() == 3
         if unbatched:
             images, segmentation = images.unsqueeze(0), segmentation.unsqueeze(0)
@@ -252,16 +281,16 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
                 f"{self.segmentation_key} must be an integer label map {images.shape[:1] + images.shape[2:]}"
                 f" matching {self.camera_key}; got {segmentation.dtype} {tuple(segmentation.shape)}"
             )
-        out_images, out_seg = self._augment_batch(images, segmentation)
+        out_images, out_seg = self._augment_batch(images, segmentation, self.prob if prob is None else prob)
         if unbatched:
             return out_images[0], out_seg[0]
         return out_images, out_seg
 
-    def _draw(self, batch: int) -> dict[str, torch.Tensor]:
+    def _draw(self, batch: int, prob: float) -> dict[str, torch.Tensor]:
         """Every random choice of one call, from the CPU generator: the same seed gives the same pastes
         on any device, and the amount drawn depends on the batch size only."""
         g, slots = self._generator, self.max_count
-        chosen = torch.rand(batch, generator=g) < self.prob
+        chosen = torch.rand(batch, generator=g) < prob
         count = torch.randint(self.min_count, self.max_count + 1, (batch,), generator=g)
         category_ids = torch.tensor([CATEGORIES.index(c) for c in self.categories])
         return {
@@ -275,10 +304,10 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
             "scale": 1.0 + SCALE_JITTER * (2 * torch.rand(slots, batch, generator=g) - 1),
         }
 
-    def _augment_batch(self, images: torch.Tensor, segmentation: torch.Tensor):
+    def _augment_batch(self, images: torch.Tensor, segmentation: torch.Tensor, prob: float):
         batch, _, height, width = images.shape
         device = images.device
-        draws = {k: v.to(device) for k, v in self._draw(batch).items()}
+        draws = {k: v.to(device) for k, v in self._draw(batch, prob).items()}
         frames = images.float()
         out = frames.clone()
         seg = segmentation.clone()

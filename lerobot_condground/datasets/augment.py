@@ -40,6 +40,11 @@ class AugmentConfig:
         # This command's defaults for the shared groups (see core/configs.py on why not a default_factory).
         self.dataset.repo_id = self.dataset.repo_id or "local/condground_pickplace"
         self.output.repo_id = self.output.repo_id or "local/condground_pickplace_augmented"
+        if self.copy_paste.warmup_steps:
+            raise ValueError(
+                f"--copy_paste.warmup_steps={self.copy_paste.warmup_steps} ramps pastes in over training batches, "
+                "and an offline augmentation has none; allowed: 0"
+            )
 
 
 def _open_source(cfg: AugmentConfig):

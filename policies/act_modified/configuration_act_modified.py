@@ -129,6 +129,7 @@ class ACTModifiedConfig(ACTConfig):
     copy_paste_seed: int = CopyPasteParams.seed
     copy_paste_categories: list[str] = field(default_factory=lambda: list(CATEGORIES))
     copy_paste_codec: str = CopyPasteParams.codec
+    copy_paste_warmup_steps: int = CopyPasteParams.warmup_steps
 
     # Normalization layers of the ResNet backbone: frozen_batchnorm (LeRobot's ACT, made for ImageNet
     # weights), batchnorm or groupnorm (32 groups). Trained from scratch (pretrained_backbone_weights=None),
@@ -267,6 +268,7 @@ class ACTModifiedConfig(ACTConfig):
             seed=self.copy_paste_seed,
             categories=self.copy_paste_categories,
             codec=self.copy_paste_codec,
+            warmup_steps=self.copy_paste_warmup_steps,
         )
 
     def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:

@@ -68,6 +68,8 @@ def test_refuses_bad_input(recorded_dataset, tmp_path, capsys):
     assert "observation.images.top" in capsys.readouterr().err
     assert _augment(*source, *out, "--copy_paste.prob=2") == 2
     assert "--copy_paste.prob=2.0 is not allowed" in capsys.readouterr().err
+    assert _augment(*source, *out, "--copy_paste.warmup_steps=100") == 2
+    assert "--copy_paste.warmup_steps=100 ramps pastes in over training batches" in capsys.readouterr().err
     # A dataset without segmentation cannot be augmented.
     plain = tmp_path / "plain"
     ds = LeRobotDataset.create(

@@ -501,6 +501,7 @@ def test_missing_labels_name_the_keys_and_a_variant_that_works():
         (dict(prompt_selection="random"), "prompt_selection='random'.*phase, both"),
         (dict(attention_neg_weight=-1.0), "attention_neg_weight=-1.0"),
         (dict(copy_paste_prob=1.5), "1.5"),
+        (dict(copy_paste_warmup_steps=-1), "warmup_steps=-1.*an integer"),
         (
             dict(copy_paste_categories=["same_color", "lookalike"]),
             r"categories=\['same_color', 'lookalike'\]",

@@ -31,7 +31,9 @@ def fake_bank(side: int = 21) -> torch.Tensor:
 
 def make_step(**kw) -> CopyPasteDistractorStep:
     step = CopyPasteDistractorStep(**kw)
-    step.load_state_dict({"sprites": fake_bank(), "generator_state": step._generator.get_state()})
+    step.load_state_dict(
+        {"sprites": fake_bank(), "generator_state": step._generator.get_state(), "batches": torch.tensor(0)}
+    )
     return step
 
 
@@ -159,6 +161,7 @@ def test_unbatched_and_bad_inputs():
         ({"camera_key": ""}, "camera_key"),
         ({"placement_box": [0.5, 0, 0.2, 1]}, "placement_box"),
         ({"max_count": True}, "max_count"),
+        ({"warmup_steps": -1}, "warmup_steps"),
     ],
 )
 def test_fields_are_validated(kwargs, name):
@@ -194,6 +197,38 @@ def test_deterministic_under_a_seed_and_resumes_the_sequence():
     assert all(torch.equal(x, y) for x, y in zip(a.augment(images, seg), resumed.augment(images, seg)))
 
 
+def test_warmup_ramps_the_paste_probability_and_resumes_it():
+    """warmup_steps: no pastes in the first training batch, about prob/2 of the samples halfway, prob after;
+    the batch count travels with the saved state, and a state without it is refused under a warmup."""
+    images, seg = scene(batch=64)
+    obs = {CAM: images, SEG: seg}
+    action = torch.zeros(64, 7)
+
+    def augmented_share(step):
+        out = step({TransitionKey.OBSERVATION: obs, TransitionKey.ACTION: action})[TransitionKey.OBSERVATION]
+        return (out[SEG] == SYNTHETIC_DISTRACTOR).flatten(1).any(1).float().mean().item()
+
+    step = make_step(prob=1.0, min_count=1, max_occlusion=1.0, sprite_scale=4.0, warmup_steps=4)
+    assert step.current_prob() == 0.0 and augmented_share(step) == 0.0
+    step({TransitionKey.OBSERVATION: obs, TransitionKey.ACTION: action})
+    assert step.current_prob() == 0.5 and 0.3 < augmented_share(step) < 0.7
+    with torch.no_grad():  # held-out batches neither paste nor count
+        step({TransitionKey.OBSERVATION: obs, TransitionKey.ACTION: action})
+    assert step.current_prob() == 0.75
+    resumed = make_step(prob=1.0, min_count=1, max_occlusion=1.0, sprite_scale=4.0, warmup_steps=4)
+    resumed.load_state_dict(step.state_dict())
+    assert resumed.current_prob() == 0.75
+    augmented_share(resumed)
+    assert resumed.current_prob() == 1.0 and augmented_share(resumed) == 1.0
+    # Offline augmentation (`condground augment`) has no batches to ramp over: always `prob`.
+    assert (step.augment(images, seg, prob=1.0)[1] == SYNTHETIC_DISTRACTOR).flatten(1).any(1).all()
+    state = step.state_dict()
+    del state["batches"]
+    with pytest.raises(ValueError, match="warmup_steps=4 .*no batch count.*allowed: warmup_steps=0"):
+        make_step(warmup_steps=4).load_state_dict(state)
+    make_step().load_state_dict(state)
+
+
 def test_registered_and_config_round_trip():
     assert ProcessorStepRegistry.get("condground_copy_paste") is CopyPasteDistractorStep
     step = CopyPasteDistractorStep(
@@ -204,6 +239,7 @@ def test_registered_and_config_round_trip():
         seed=4,
         categories=["neither"],
         camera_key="observation.images.wrist",
+        warmup_steps=100,
     )
     assert CopyPasteDistractorStep(**step.get_config()).get_config() == step.get_config()
     assert step._bank is None  # construction never renders
