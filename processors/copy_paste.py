@@ -42,6 +42,7 @@ from lerobot_condground.core.labels import SYNTHETIC_DISTRACTOR, TARGET_OBJECT, 
 from lerobot_condground.envs.assets import AUGMENTATION_COLORS, COLORS
 
 CATEGORIES = ("same_color", "same_shape", "neither")
+ROLES = ("object", "receptacle")
 SAME_COLOR, SAME_SHAPE, NEITHER = range(3)
 ROLE_LABELS = (TARGET_OBJECT, TARGET_RECEPTACLE)  # role 0 object, role 1 receptacle
 SHAPES_PER_ROLE = 4  # sprites.SPRITE_SHAPES holds this many shapes per role, objects first
@@ -57,6 +58,7 @@ CONFIG_FIELDS = (
     "max_count",
     "max_occlusion",
     "categories",
+    "roles",
     "seed",
     "sprite_scale",
     "placement_box",
@@ -126,6 +128,8 @@ class CopyPasteParams:
     max_count: int = 4
     max_occlusion: float = 0.1  # of the target object's and of the target receptacle's visible pixels
     categories: list[str] = field(default_factory=lambda: list(CATEGORIES))
+    # Whose look-alikes are pasted: the target object's, the target receptacle's, or both (each paste draws one).
+    roles: list[str] = field(default_factory=lambda: list(ROLES))
     seed: int = 0
     sprite_scale: float = 1.0
     # Where paste centers may fall, as fractions of the frame (top, left, bottom, right): by default the
@@ -156,16 +160,8 @@ class CopyPasteParams:
                 f"sprite_scale={self.sprite_scale!r} is not allowed; allowed: 0 < sprite_scale <= "
                 f"{MAX_SPRITE_SCALE}"
             )
-        self.categories = list(self.categories)
-        if (
-            not self.categories
-            or any(c not in CATEGORIES for c in self.categories)
-            or len(set(self.categories)) != len(self.categories)
-        ):
-            raise ValueError(
-                f"categories={self.categories!r} is not allowed; allowed: a non-empty list of "
-                f"distinct values from {', '.join(CATEGORIES)}"
-            )
+        self.categories = _check_choices("categories", self.categories, CATEGORIES)
+        self.roles = _check_choices("roles", self.roles, ROLES)
         self.placement_box = list(self.placement_box)
         box = self.placement_box
         if (
@@ -233,6 +229,7 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
     def get_config(self) -> dict[str, Any]:
         config = {name: getattr(self, name) for name in CONFIG_FIELDS}
         config["categories"] = list(self.categories)
+        config["roles"] = list(self.roles)
         config["placement_box"] = list(self.placement_box)
         return config
 
@@ -293,9 +290,10 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
         chosen = torch.rand(batch, generator=g) < prob
         count = torch.randint(self.min_count, self.max_count + 1, (batch,), generator=g)
         category_ids = torch.tensor([CATEGORIES.index(c) for c in self.categories])
+        role_ids = torch.tensor([ROLES.index(r) for r in self.roles])
         return {
             "active": chosen & (torch.arange(slots).unsqueeze(1) < count),  # (slots, B)
-            "role": torch.randint(0, 2, (slots, batch), generator=g),
+            "role": role_ids[torch.randint(0, len(role_ids), (slots, batch), generator=g)],
             "category": category_ids[torch.randint(0, len(category_ids), (slots, batch), generator=g)],
             "shape": torch.randint(0, SHAPES_PER_ROLE, (slots, batch), generator=g),
             "color": torch.randint(0, len(AUGMENTATION_COLORS), (slots, batch), generator=g),
@@ -450,6 +448,16 @@ class CopyPasteDistractorStep(CopyPasteParams, ProcessorStep):
             self._canvases.clear()  # one resolution at a time in practice; do not hoard memory
             self._canvases[key] = canvas.to(device)
         return self._canvases[key]
+
+
+def _check_choices(name: str, values, allowed: tuple[str, ...]) -> list[str]:
+    values = list(values)
+    if not values or any(v not in allowed for v in values) or len(set(values)) != len(values):
+        raise ValueError(
+            f"{name}={values!r} is not allowed; allowed: a non-empty list of distinct values from "
+            f"{', '.join(allowed)}"
+        )
+    return values
 
 
 def _check_key(name: str, value) -> None:

@@ -37,7 +37,12 @@ from lerobot_condground.core.labels import (
     PROMPT_CAMERA_KEYS,
 )
 from lerobot_condground.core.trust import HUB_ID
-from lerobot_condground.processors.copy_paste import CATEGORIES, CopyPasteDistractorStep, CopyPasteParams
+from lerobot_condground.processors.copy_paste import (
+    CATEGORIES,
+    ROLES,
+    CopyPasteDistractorStep,
+    CopyPasteParams,
+)
 
 # Learning-rate schedules of the training preset, over `--steps`: constant is ACT's (no scheduler);
 # cosine warms up linearly, then anneals to zero at the last step.
@@ -128,6 +133,7 @@ class ACTModifiedConfig(ACTConfig):
     copy_paste_max_occlusion: float = CopyPasteParams.max_occlusion
     copy_paste_seed: int = CopyPasteParams.seed
     copy_paste_categories: list[str] = field(default_factory=lambda: list(CATEGORIES))
+    copy_paste_roles: list[str] = field(default_factory=lambda: list(ROLES))
     copy_paste_codec: str = CopyPasteParams.codec
     copy_paste_warmup_steps: int = CopyPasteParams.warmup_steps
 
@@ -267,6 +273,7 @@ class ACTModifiedConfig(ACTConfig):
             max_occlusion=self.copy_paste_max_occlusion,
             seed=self.copy_paste_seed,
             categories=self.copy_paste_categories,
+            roles=self.copy_paste_roles,
             codec=self.copy_paste_codec,
             warmup_steps=self.copy_paste_warmup_steps,
         )

@@ -162,6 +162,8 @@ def test_unbatched_and_bad_inputs():
         ({"placement_box": [0.5, 0, 0.2, 1]}, "placement_box"),
         ({"max_count": True}, "max_count"),
         ({"warmup_steps": -1}, "warmup_steps"),
+        ({"roles": ["object", "object"]}, "roles"),
+        ({"roles": ["bin"]}, "roles"),
     ],
 )
 def test_fields_are_validated(kwargs, name):
@@ -195,6 +197,18 @@ def test_deterministic_under_a_seed_and_resumes_the_sequence():
     resumed = make_step(seed=0)
     resumed.load_state_dict(a.state_dict())
     assert all(torch.equal(x, y) for x, y in zip(a.augment(images, seg), resumed.augment(images, seg)))
+
+
+def test_roles_choose_whose_look_alikes_are_pasted():
+    """roles=[object] pastes copies of the 5x5 object only, roles=[receptacle] of the 12x12 receptacle only."""
+    images, seg = scene(batch=32)
+    sizes = {}
+    for role in ("object", "receptacle"):
+        step = make_step(prob=1.0, max_count=1, max_occlusion=1.0, categories=["same_shape"], roles=[role])
+        pasted = (step.augment(images, seg)[1] == SYNTHETIC_DISTRACTOR).flatten(1).sum(1)
+        sizes[role] = pasted[pasted > 0]
+    assert len(sizes["object"]) > 16 and len(sizes["receptacle"]) > 16
+    assert sizes["object"].max() <= 40 < 100 <= sizes["receptacle"].min()
 
 
 def test_warmup_ramps_the_paste_probability_and_resumes_it():
@@ -240,6 +254,7 @@ def test_registered_and_config_round_trip():
         categories=["neither"],
         camera_key="observation.images.wrist",
         warmup_steps=100,
+        roles=["receptacle"],
     )
     assert CopyPasteDistractorStep(**step.get_config()).get_config() == step.get_config()
     assert step._bank is None  # construction never renders
