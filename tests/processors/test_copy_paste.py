@@ -235,7 +235,10 @@ def test_warmup_ramps_the_paste_probability_and_resumes_it():
     augmented_share(resumed)
     assert resumed.current_prob() == 1.0 and augmented_share(resumed) == 1.0
     # Offline augmentation (`condground augment`) has no batches to ramp over: always `prob`.
-    assert (step.augment(images, seg, prob=1.0)[1] == SYNTHETIC_DISTRACTOR).flatten(1).any(1).all()
+    assert (
+        step.current_prob() < 1.0
+        and (step.augment(images, seg)[1] == SYNTHETIC_DISTRACTOR).flatten(1).any(1).all()
+    )
     state = step.state_dict()
     del state["batches"]
     with pytest.raises(ValueError, match="warmup_steps=4 .*no batch count.*allowed: warmup_steps=0"):
