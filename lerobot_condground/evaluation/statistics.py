@@ -52,6 +52,7 @@ VARIANT_PAIRING = (
     "task",
     "condition",
     "training_seed_index",
+    "checkpoint_index",
     "eval_seed",
     "episode",
     "layout_seed",
@@ -369,19 +370,29 @@ def condition_differences(
 def variant_differences(df: pd.DataFrame, baseline_label: str, metric: str = "success") -> pd.DataFrame:
     """policy − baseline for each other policy_label/task/condition, pairing episodes on task,
     condition, training-seed index (the k-th smallest training seed of each policy: two variants
-    trained with seeds 0,1,2 and 1000,1001,1002 still pair), eval seed, episode index, layout seed and
-    prompt: the checkpoints differ, the layout and the seed index are shared. Cells the baseline did not run are skipped; cells with keys that
-    do not match one to one raise ValueError naming the cell."""
+    trained with seeds 0,1,2 and 1000,1001,1002 still pair), checkpoint index within that run (the k-th
+    checkpoint by path, so the pooled late checkpoints of two runs pair step by step), eval seed, episode
+    index, layout seed and prompt: the checkpoints differ, the layout and the indices are shared. Cells the
+    baseline did not run are skipped; cells with keys that do not match one to one raise ValueError naming
+    the cell. Beside Newcombe's interval (every pair independent), `cluster_low`, `cluster_high` and
+    `cluster_p` are `clustered_difference`'s: the layout pairs, the training run replicates (NaN with one
+    run an arm)."""
     column = _pairable_column(metric)
     if baseline_label not in set(df["policy_label"]):
         raise ValueError(
             f"Baseline {baseline_label!r} is not among the policy labels {sorted(set(df['policy_label']))}"
         )
+    run = ["policy_label", "task", "training_seed"]
     df = df.assign(
         training_seed_index=df.groupby(["policy_label", "task"])["training_seed"]
         .rank(method="dense")
         .astype(int)
-        - 1
+        - 1,
+        checkpoint_index=df.assign(_ck=df["checkpoint"].fillna("").astype(str))
+        .groupby(run)["_ck"]
+        .rank(method="dense")
+        .astype(int)
+        - 1,
     )
     base = df[df["policy_label"] == baseline_label]
     rows = []
@@ -393,6 +404,7 @@ def variant_differences(df: pd.DataFrame, baseline_label: str, metric: str = "su
             continue
         name = f"{label} vs {baseline_label} / {task} / {condition}"
         d = _pair(ref, cell, VARIANT_PAIRING, column, name)
+        c = clustered_difference(_runs_by_layout(ref, column), _runs_by_layout(cell, column))
         rows.append(
             {
                 "policy_label": label,
@@ -401,9 +413,22 @@ def variant_differences(df: pd.DataFrame, baseline_label: str, metric: str = "su
                 "condition": condition,
                 "metric": metric,
                 **_rename(d, "baseline", "policy"),
+                "runs": min(c["runs_a"], c["runs_b"]),
+                "cluster_low": c["low"],
+                "cluster_high": c["high"],
+                "cluster_p": c["p_value"],
             }
         )
     return pd.DataFrame(rows)
+
+
+def _runs_by_layout(cell: pd.DataFrame, column: str) -> pd.DataFrame:
+    """One arm's paired rows as `layout_means`' input: the run is the training-seed index, the layout the
+    episode's pairing key without it."""
+    layout = cell[["eval_seed", "episode", "layout_seed", "prompt"]].astype(str).agg("/".join, axis=1)
+    return pd.DataFrame(
+        {"run": cell["training_seed_index"], "layout": layout, "success": cell[column].astype(float)}
+    )
 
 
 def _rename(d: dict, a: str, b: str) -> dict:

@@ -31,9 +31,10 @@ VARIANT_ORDER = ("standard", "full", "augmentation", "augmentation_attention")
 # Preset values; every one is also a flag (a flag given wins). `policy` is the preset's lerobot-train policy
 # flags, before --train.extra_flags.
 PRESETS: dict[str, dict] = {
-    # What fits the 2-core CPU machine in a few sessions: the CPU training configuration
-    # (lerobot_condground/core/training.py: its recovery data and step budget), one training seed,
-    # the conditions that carry the paper's claims, 2 x 50 rollouts (95 % intervals of about +-10 points).
+    # What fits the 2-core CPU machine in several sessions: the CPU training configuration
+    # (lerobot_condground/core/training.py: its recovery data and step budget), the protocol of
+    # docs/learning-curve/v3 (two training seeds, the last three checkpoints of each pooled on the same 50
+    # held-out layouts: 300 rollouts a condition), the conditions that carry the paper's claims.
     "cpu": {
         "tasks": "PickPlaceRandomBin-v0,PickPlaceFixedBin-v0",
         "record.episodes": CPU_EPISODES,
@@ -43,17 +44,18 @@ PRESETS: dict[str, dict] = {
         "takeover.episodes": 0,
         "takeover.driver_steps": CPU_STEPS // 2,
         "train.variants": ",".join(VARIANT_ORDER),
-        "train.seeds": 1,
+        "train.seeds": 2,
         "train.steps": CPU_STEPS,
         "train.batch_size": CPU_BATCH_SIZE,
-        "train.save_freq": 2000,
+        "train.save_freq": CPU_STEPS // 6,
         "train.num_workers": 0,
         "train.device": "cpu",
         "eval.conditions": "clean,full_mixed,object_color_3,receptacle_shape_2,object_neither_3",
         "eval.counterbalanced": "full_mixed",
-        "eval.seeds": 2,
+        "eval.seeds": 1,
         "eval.n_episodes": 50,
         "eval.batch_size": 10,
+        "eval.pool": 3,
         "diagnose.pairs": 20,
         "probe.episodes": 50,
         "jobs": 2,
@@ -82,6 +84,7 @@ PRESETS: dict[str, dict] = {
         "eval.seeds": 4,
         "eval.n_episodes": 50,
         "eval.batch_size": 10,
+        "eval.pool": 1,  # the paper evaluates each run's final policy
         "diagnose.pairs": 20,
         "probe.episodes": 50,
         "jobs": 1,
@@ -171,6 +174,9 @@ class EvalSettings:
     n_episodes: int | None = None  # rollouts per evaluation seed
     batch_size: int | None = None
     episode_length: int = 300  # env steps before a rollout counts as failed
+    # The last checkpoints of each training run swept on the same layouts and pooled (the protocol: 3); one
+    # run's late checkpoints swing by up to 20 points here, so a single one says little.
+    pool: int | None = None
 
 
 @dataclass
@@ -232,7 +238,8 @@ class ReproduceConfig:
         self._check_stage_limits()
         check_at_least(self.takeover, "takeover.", episodes=0, driver_steps=1)
         check_at_least(self.train, "train.", seeds=1, steps=1, batch_size=1, save_freq=1, num_workers=0)
-        check_at_least(self.eval, "eval.", seeds=1, n_episodes=1, batch_size=1, episode_length=1)
+        check_at_least(self.eval, "eval.", seeds=1, n_episodes=1, batch_size=1, episode_length=1, pool=1)
+        self.pooled_steps()
         check_at_least(self.diagnose, "diagnose.", pairs=1)
         check_at_least(self.probe, "probe.", episodes=1)
         check_at_least(self, "", jobs=1)
@@ -295,6 +302,20 @@ class ReproduceConfig:
         return parse_conditions(self.eval.conditions), parse_conditions(
             counterbalanced
         ) if counterbalanced.strip() else []
+
+    def pooled_steps(self) -> list[int]:
+        """The steps of the checkpoints each run's sweep pools: the last --eval.pool that lerobot-train
+        saves (every --train.save_freq steps and at the last step)."""
+        saved = sorted(
+            {*range(self.train.save_freq, self.train.steps + 1, self.train.save_freq), self.train.steps}
+        )
+        if self.eval.pool > len(saved):
+            raise ValueError(
+                f"--eval.pool={self.eval.pool} is not allowed with --train.steps={self.train.steps} and "
+                f"--train.save_freq={self.train.save_freq}, which save {len(saved)} checkpoint(s); allowed: 1 to "
+                f"{len(saved)}, or a smaller --train.save_freq"
+            )
+        return saved[-self.eval.pool :]
 
     def policy_flags(self) -> list[str]:
         return [*PRESETS[self.preset]["policy"], *self.train.extra_flags.split()]
@@ -399,19 +420,32 @@ class Stage:
 
 def checkpoint_dir(cfg: ReproduceConfig, task: str, variant: str, seed: int) -> Path:
     """The training run's final checkpoint, where lerobot-train writes it."""
-    return _final_checkpoint(Path(cfg.output_dir) / "train" / task / variant / f"seed{seed}", cfg.train.steps)
+    steps = cfg.train.steps
+    return _checkpoint(Path(cfg.output_dir) / "train" / task / variant / f"seed{seed}", steps, steps)
 
 
 def driver_checkpoint(cfg: ReproduceConfig, task: str) -> Path:
     """The final checkpoint of the policy that drives the takeover episodes."""
-    return _final_checkpoint(Path(cfg.output_dir) / "driver" / task, cfg.takeover.driver_steps)
+    steps = cfg.takeover.driver_steps
+    return _checkpoint(Path(cfg.output_dir) / "driver" / task, steps, steps)
 
 
-def _final_checkpoint(run: Path, steps: int) -> Path:
+def pooled_checkpoints(cfg: ReproduceConfig, task: str, variant: str) -> list[Path]:
+    """What a variant's sweeps evaluate: the pooled late checkpoints of every training run, run by run."""
+    run = Path(cfg.output_dir) / "train" / task / variant
+    return [
+        _checkpoint(run / f"seed{seed}", cfg.train.steps, step)
+        for seed in range(cfg.train.seeds)
+        for step in cfg.pooled_steps()
+    ]
+
+
+def _checkpoint(run: Path, steps: int, step: int) -> Path:
+    """Where lerobot-train saves step `step` of a `steps`-step run."""
     from lerobot.common.train_utils import get_step_checkpoint_dir
     from lerobot.utils.constants import PRETRAINED_MODEL_DIR
 
-    return get_step_checkpoint_dir(run, steps, steps) / PRETRAINED_MODEL_DIR
+    return get_step_checkpoint_dir(run, steps, step) / PRETRAINED_MODEL_DIR
 
 
 def plan(cfg: ReproduceConfig, cores: int | None = None, bf16: bool | None = None) -> list[Stage]:
@@ -486,7 +520,7 @@ def plan(cfg: ReproduceConfig, cores: int | None = None, bf16: bool | None = Non
             ("sweep_counterbalanced", f"sweep_counterbalanced/{task}/{variant}", counterbalanced),
         ):
             if conds:
-                n = cfg.train.seeds * len(conds) * per_condition
+                n = cfg.train.seeds * cfg.eval.pool * len(conds) * per_condition
                 stages.append(
                     Stage(
                         name,

@@ -39,6 +39,7 @@ from lerobot_condground.experiments.plan import (
     driver_checkpoint,
     makespan,
     plan,
+    pooled_checkpoints,
 )
 
 MANIFEST = "reproduce.json"
@@ -98,7 +99,7 @@ def command(cfg: ReproduceConfig, stage: Stage, share: int) -> list[str]:
             "--wandb.enable=false", f"--seed={seed}", f"--output_dir={here}",
         ]  # fmt: skip
     if stage.kind in ("sweep", "sweep_counterbalanced"):
-        checkpoints = [checkpoint_dir(cfg, task, variant, s) for s in range(cfg.train.seeds)]
+        checkpoints = pooled_checkpoints(cfg, task, variant)
         counterbalanced = stage.kind == "sweep_counterbalanced"
         return [
             console_script("condground"), "sweep", f"--policy.paths={','.join(map(str, checkpoints))}",
@@ -149,6 +150,7 @@ def check_same_settings(cfg: ReproduceConfig) -> None:
         previous = read_json_object(path, "Reproduction manifest").get("settings", {})
         previous.setdefault("env", {"servo": SERVO_BEFORE_THE_SETTING})  # written before the setting existed
         previous.setdefault("record", {}).setdefault("drift_std", 0.0)  # likewise: clean demonstrations
+        previous.setdefault("eval", {}).setdefault("pool", 1)  # likewise: the final checkpoints alone
         diffs = _differences(previous, settings)
         if diffs:
             raise ValueError(

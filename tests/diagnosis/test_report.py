@@ -18,7 +18,7 @@ import pytest
 from lerobot_condground.core.conditions import NAMED_CONDITIONS
 from lerobot_condground.diagnosis.report import ReportConfig, build_report, parse_report_args
 from lerobot_condground.evaluation.results import COLUMNS, METADATA_KEY, write_table
-from lerobot_condground.evaluation.statistics import paired_difference, rate
+from lerobot_condground.evaluation.statistics import paired_difference, rate, variant_differences
 
 TASKS = ("PickPlaceFixedBin-v0", "PickPlaceRandomBin-v0")
 CONDITIONS = ["clean", "object_color_3", "receptacle_shape_2", "full_mixed"]
@@ -363,6 +363,11 @@ def test_report_numbers_follow_the_inputs(inputs, report):
     k, n = int(cell.success.sum()), len(cell)
     assert f"({k}/{n})" in text
     assert "Newcombe" in text and "McNemar" in text
+    # two training runs a policy: the variant difference carries the run-aware interval beside Newcombe's
+    d = variant_differences(frame, "act").iloc[0]
+    assert (
+        f"{100 * d['diff']:+.1f} pp [{100 * d['cluster_low']:+.1f}, {100 * d['cluster_high']:+.1f}]" in text
+    )
     assert "+60.0 pp" in text  # probe: 12/20 swapped vs 0/20 target
     assert (
         "condground sweep --env.task=PickPlaceFixedBin-v0 &#x27;--policy.paths=[a,b]&#x27; &#x27;--output_dir=out dir&#x27;"

@@ -11,6 +11,7 @@ from lerobot_condground.core.conditions import NAMED_CONDITIONS
 from lerobot_condground.evaluation.results import COLUMNS
 from lerobot_condground.evaluation.statistics import (
     cell_metrics,
+    clustered_difference,
     condition_differences,
     paired_difference,
     rate,
@@ -303,3 +304,40 @@ def test_pairs_refuse_rows_of_other_layouts():
             df.assign(layout_seed=np.where(df.policy_label == "act", df.layout_seed, df.layout_seed + 1)),
             "act",
         )
+
+
+def test_variant_differences_pair_pooled_checkpoints_by_rank_and_replicate_over_runs():
+    """Three late checkpoints a run (the protocol): checkpoint k of run i pairs with checkpoint k of the
+    baseline's run i, and the run-aware interval replicates over the runs, not the pooled pairs."""
+    df = _grid_table(np.random.default_rng(8))
+    pooled = pd.concat(
+        [
+            df.assign(
+                checkpoint=df.checkpoint + f"/checkpoints/{step:06d}",
+                checkpoint_hash=df.checkpoint_hash + f"{step:06d}",
+            )
+            for step in (4000, 5000, 6000)
+        ],
+        ignore_index=True,
+    )
+    out = variant_differences(pooled, "act").set_index("condition")
+    single = variant_differences(df, "act").set_index("condition")
+    assert (out["n"] == 3 * single["n"]).all() and (out["runs"] == 2).all()
+    assert (out["diff"] == single["diff"]).all()
+    row = out.loc["full_mixed"]
+    cell = df[df.condition == "full_mixed"]
+    runs = {
+        label: cell[cell.policy_label == label].assign(
+            run=lambda t: t.training_seed, layout=lambda t: t.episode + 100 * t.eval_seed
+        )
+        for label in ("act", "act_modified/full")
+    }
+    expected = clustered_difference(runs["act"], runs["act_modified/full"])
+    assert (row["cluster_low"], row["cluster_high"], row["cluster_p"]) == pytest.approx(
+        (expected["low"], expected["high"], expected["p_value"])
+    )
+    assert row["cluster_high"] > row["cluster_low"]
+    # A baseline swept at its final checkpoint only has no partner for the treated's earlier ones.
+    final_only = pd.concat([pooled[pooled.policy_label != "act"], df[df.policy_label == "act"]])
+    with pytest.raises(ValueError, match="have no partner"):
+        variant_differences(final_only, "act")

@@ -24,6 +24,7 @@ TOY = [
     "--record.episodes=2",
     "--takeover.episodes=1",
     "--takeover.driver_steps=10",
+    "--train.seeds=1",
     "--train.steps=40",
     "--train.save_freq=10",
     "--train.batch_size=2",
@@ -43,14 +44,15 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     out = tmp_path / "plan"
     assert main(["reproduce", "--preset=cpu", f"--output_dir={out}", "--dry_run=true"]) == 0
     text = capsys.readouterr().out
-    assert "preset cpu: 32 stages (0 done)" in text
+    assert "preset cpu: 45 stages (0 done)" in text
     # Task 2 first, the paper's three methods before augmentation_attention
     trains = [line.split()[0] for line in text.splitlines() if line.startswith("train/")]
-    assert trains[:3] == [
+    assert trains[:6:2] == [
         f"train/PickPlaceRandomBin-v0/{v}/seed0" for v in ("standard", "full", "augmentation")
     ]
-    assert trains[-1] == "train/PickPlaceFixedBin-v0/augmentation_attention/seed0"
-    assert "sweep/PickPlaceRandomBin-v0/full" in text and "500 rollouts" in text
+    assert trains[-1] == "train/PickPlaceFixedBin-v0/augmentation_attention/seed1"
+    # the protocol: 2 training seeds x the last 3 checkpoints x 50 held-out layouts, 5 conditions
+    assert "sweep/PickPlaceRandomBin-v0/full" in text and "1500 rollouts" in text
     assert "diagnose/PickPlaceRandomBin-v0/augmentation/seed0" in text
     assert "probe/PickPlaceFixedBin-v0/full/seed0" in text and "diagnose/PickPlaceFixedBin" not in text
     assert "estimated time left:" in text and "extra_flags" not in text
@@ -69,7 +71,7 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
     dagger = ["--takeover.episodes=100", "--record.episodes=100"]
     assert main(["reproduce", "--preset=cpu", f"--output_dir={out}", "--dry_run=true", *dagger]) == 0
     text = capsys.readouterr().out
-    assert "preset cpu: 38 stages (0 done)" in text
+    assert "preset cpu: 51 stages (0 done)" in text
     names = [line.split()[0] for line in text.splitlines()[2:-1]]
     task = "PickPlaceRandomBin-v0"
     assert names[:5] == [
@@ -130,6 +132,12 @@ def test_dry_run_prints_the_plan_and_its_time_without_writing(tmp_path, capsys):
         ("--takeover.episodes=-1", "--takeover.episodes=-1 is not allowed; allowed: a number >= 0"),
         ("--takeover.episodes=100001", "--takeover.episodes=100001 is not allowed; allowed: 1 to 100000"),
         ("--takeover.driver_steps=0", "--takeover.driver_steps=0 is not allowed; allowed: a number >= 1"),
+        ("--eval.pool=0", "--eval.pool=0 is not allowed; allowed: a number >= 1"),
+        (
+            "--eval.pool=7",
+            "--eval.pool=7 is not allowed with --train.steps=6000 and --train.save_freq=1000, which save 6 "
+            "checkpoint(s); allowed: 1 to 6",
+        ),
     ],
 )
 def test_bad_input_is_one_error_before_work(tmp_path, capsys, flag, message):
@@ -176,6 +184,36 @@ def test_the_plan_times_cpu_training_at_the_bf16_rate_only_where_training_runs_i
     assert 95 < fp32[standard] < 105 and 40 < bf16[standard] < 45
     on_gpu = ReproduceConfig(output_dir="unused", train=TrainSettings(device="cuda"))
     assert train_minutes(on_gpu, True) == train_minutes(on_gpu, False)
+
+
+def test_sweeps_pool_the_last_checkpoints_of_every_run_and_older_reproductions_keep_the_final_one(tmp_path):
+    """The protocol: each run's last --eval.pool saved checkpoints, on the same layouts; a manifest from
+    before the setting swept each run's final checkpoint alone and continues only so."""
+    from lerobot_condground.experiments.plan import EvalSettings, ReproduceConfig, TrainSettings, plan
+    from lerobot_condground.experiments.reproduce import check_same_settings, command
+
+    out = tmp_path / "run"
+    cfg = ReproduceConfig(output_dir=str(out), tasks="PickPlaceFixedBin-v0", train=TrainSettings(steps=2500))
+    cfg.train.save_freq = 1000
+    sweep = next(s for s in plan(cfg) if s.kind == "sweep" and s.variant == "full")
+    (paths,) = [
+        a.removeprefix("--policy.paths=") for a in command(cfg, sweep, 1) if a.startswith("--policy.paths=")
+    ]
+    run = out / "train" / "PickPlaceFixedBin-v0" / "full"
+    # saved at 1000, 2000 and the last step: those three, run by run
+    assert paths.split(",") == [
+        str(run / f"seed{seed}" / "checkpoints" / f"{step:06d}" / "pretrained_model")
+        for seed in (0, 1)
+        for step in (1000, 2000, 2500)
+    ]
+    assert sweep.rollouts == 2 * 3 * 5 * 50
+    settings = ReproduceConfig(output_dir=str(out)).pinned()
+    assert settings["eval"].pop("pool") == 3
+    out.mkdir()
+    (out / "reproduce.json").write_text(json.dumps({"settings": settings}))
+    with pytest.raises(ValueError, match="other settings \\(eval.pool: 1 -> 3\\)"):
+        check_same_settings(ReproduceConfig(output_dir=str(out)))
+    check_same_settings(ReproduceConfig(output_dir=str(out), eval=EvalSettings(pool=1)))
 
 
 def test_a_reproduction_from_before_recovery_data_continues_only_with_clean_demonstrations(tmp_path):
@@ -283,7 +321,14 @@ def test_a_killed_run_resumes_without_repeating_or_losing_a_stage(tmp_path):
     assert len(commands) == 2 and "--resume=true" in commands[1]  # went on from its checkpoint
     assert (train / "checkpoints" / "000040" / "pretrained_model" / "model.safetensors").is_file()
     results = pd.read_parquet(out / "sweep" / "PickPlaceRandomBin-v0" / "full" / "results.parquet")
-    assert len(results) == 2 and set(results["condition"]) == {"full_mixed"}
+    assert len(results) == 2 * 3 and set(results["condition"]) == {"full_mixed"}
+    # the run's last three checkpoints (the preset's --eval.pool), each on the same layouts
+    assert sorted(results["checkpoint"].str.extract(r"checkpoints/(\d+)/")[0].unique()) == [
+        "000020",
+        "000030",
+        "000040",
+    ]
+    assert (results.groupby("checkpoint")["layout_seed"].apply(sorted).map(tuple).nunique()) == 1
     assert (
         read_json(out / "probe" / "PickPlaceRandomBin-v0" / "full" / "seed0" / "probe.json")["episodes"] == 1
     )
@@ -318,7 +363,7 @@ def test_a_terminated_run_takes_its_stages_with_it(tmp_path):
     out = tmp_path / "repro"
     flags = [
         f"--output_dir={out}", "--tasks=PickPlaceRandomBin-v0", "--train.variants=standard",
-        "--record.episodes=1", "--train.steps=2", "--train.batch_size=2", "--progress=false",
+        "--record.episodes=1", "--train.steps=2", "--train.batch_size=2", "--eval.pool=1", "--progress=false",
     ]  # fmt: skip
     env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
     first = subprocess.Popen(

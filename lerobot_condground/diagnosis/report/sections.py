@@ -437,8 +437,10 @@ def _section_variant_differences(results: pd.DataFrame, labels) -> Section:
     section.blocks += [
         Para(
             f"Success of each policy minus the baseline {baseline!r}, paired on task, condition, training "
-            "seed index, eval seed and episode (same layout). Newcombe interval and exact McNemar p as "
-            "above."
+            "seed index, checkpoint index within the run, eval seed and episode (same layout). Newcombe "
+            "interval and exact McNemar p as above, every pair taken as independent; beside it the "
+            "layout-clustered, run-aware interval, which takes the layout as the pairing unit and the "
+            "training run as the replicate (none with one run a policy)."
         ),
         Table(
             "variant-differences",
@@ -450,6 +452,7 @@ def _section_variant_differences(results: pd.DataFrame, labels) -> Section:
                 baseline,
                 "policy rate",
                 "difference [95 % CI]",
+                "layout-clustered, run-aware",
                 f"only {baseline} / only policy",
             ],
             [
@@ -460,6 +463,7 @@ def _section_variant_differences(results: pd.DataFrame, labels) -> Section:
                     f"{pct(r.rate_baseline)}%",
                     f"{pct(r.rate_policy)}%",
                     fmt_diff(r._asdict()),
+                    _interval(r._asdict(), "cluster_low", "cluster_high", "cluster_p"),
                     f"{r.baseline_only} / {r.policy_only}",
                 ]
                 for r in diffs.itertuples()
