@@ -40,7 +40,7 @@ from lerobot_condground.core.configs import (
 )
 from lerobot_condground.core.files import read_json_object
 from lerobot_condground.core.provenance import RECORD_FILE, command_line, console_script, versions
-from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_STEPS, policy_flags, speed_flags
+from lerobot_condground.core.training import CPU_BATCH_SIZE, CPU_POLICY, CPU_STEPS, policy_flags, speed_flags
 from lerobot_condground.evaluation.results import read_table
 from lerobot_condground.evaluation.statistics import (
     METRICS,
@@ -251,7 +251,7 @@ def resolve_arm(cfg: CompareConfig, arm: ArmConfig) -> Arm:
             raise ValueError(
                 f"--{arm.name}: {len(runs)} runs in .runs and {len(seeds)} --train.seeds; allowed: one run a seed"
             )
-        settings = []
+        settings, recipes = [], []
         for run in runs:
             path = run / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
             if not path.is_file():
@@ -265,14 +265,19 @@ def resolve_arm(cfg: CompareConfig, arm: ArmConfig) -> Arm:
                  "batch_size": config.get("batch_size"), "dataset.repo_id": dataset.get("repo_id"),
                  "dataset.root": dataset.get("root"), "dataset.episodes": dataset.get("episodes")}
             )  # fmt: skip
+            recipes.append(recipe_flags(config.get("policy") or {}))
         if any(s != settings[0] for s in settings):
             raise ValueError(f"--{arm.name}.runs: the runs differ in budget or data: {settings}")
+        if any(r != recipes[0] for r in recipes):
+            raise ValueError(f"--{arm.name}.runs: the runs differ in their policy settings: {recipes}")
         steps, every = settings[0]["steps"], settings[0]["save_freq"]
         if not (isinstance(steps, int) and isinstance(every, int) and steps > 0 and every > 0):
             raise ValueError(
                 f"--{arm.name}.runs: steps {steps!r} and save_freq {every!r} are not step counts"
             )
-        return Arm(arm.name, "runs", [], runs, settings[0], _pooled(arm.name, steps, every, cfg.eval.pool))
+        return Arm(
+            arm.name, "runs", recipes[0], runs, settings[0], _pooled(arm.name, steps, every, cfg.eval.pool)
+        )
     table = published_rollouts(Path(arm.rollouts), arm.name, cfg.env.task)
     steps = sorted(table["step"].unique())[-cfg.eval.pool :]
     if len(steps) < cfg.eval.pool or table["seed"].nunique() != len(seeds):
@@ -283,6 +288,36 @@ def resolve_arm(cfg: CompareConfig, arm: ArmConfig) -> Arm:
     setting = dict.fromkeys((*BUDGET_KEYS, *DATA_KEYS))
     setting["steps"] = int(steps[-1])
     return Arm(arm.name, "rollouts", [], [], setting, [int(s) for s in steps])
+
+
+# Policy fields a finished run's config holds that are not its recipe: read from the dataset (features, the
+# camera, the label keys), chosen for the machine (device, bf16, memory format), or LeRobot's bookkeeping.
+NOT_RECIPE = {
+    "type", "input_features", "output_features", "attention_camera", "label_keys", "device", "use_amp",
+    "channels_last", "push_to_hub", "repo_id", "private", "tags", "license", "pretrained_path",
+}  # fmt: skip
+
+
+def recipe_flags(policy: dict) -> list[str]:
+    """A finished act_modified run's policy settings as the lerobot-train flags that set them over the CPU
+    configuration (`core.training.policy_flags`): its variant, and each field that differs from what that
+    variant has there."""
+    import draccus
+
+    from lerobot_condground.policies.act_modified.configuration_act_modified import ACTModifiedConfig
+
+    if policy.get("type") != "act_modified":
+        return []
+    variant = policy.get("variant")
+    reference = draccus.encode(ACTModifiedConfig(variant=variant, **CPU_POLICY))
+    flags = [f"--policy.variant={variant}"]
+    for key, value in policy.items():
+        if key not in NOT_RECIPE and key != "variant" and key in reference and reference[key] != value:
+            text = (
+                f"[{','.join(map(str, value))}]" if isinstance(value, list) else json.dumps(value).strip('"')
+            )
+            flags.append(f"--policy.{key}={text}")
+    return flags
 
 
 def published_rollouts(path: Path, name: str, task: str) -> pd.DataFrame:

@@ -89,6 +89,10 @@ def test_two_recipes_are_trained_scored_paired_published_and_reported(small_reco
     compare(small_recording, out, "--treated.flags=", f"--treated.runs={runs}")
     again = json.loads((folder / "compare.json").read_text())
     assert again["arms"]["wide"]["source"] == "runs" and again["differences"] == []
+    # its recipe read back from the runs' configs: the flags over the CPU configuration that trained them
+    recipe = again["arms"]["wide"]["flags"]
+    assert recipe[0] == "--policy.variant=standard" and "--policy.dim_feedforward=128" in recipe
+    assert "--policy.dim_model=32" in recipe and not any("device" in f or "use_amp" in f for f in recipe)
     pd.testing.assert_frame_equal(pd.read_csv(folder / "summary.csv").drop(columns="flags"),
                                   pd.DataFrame([row]).drop(columns="flags"), check_dtype=False)  # fmt: skip
 
@@ -288,6 +292,9 @@ def fake_run(folder: Path, config: str) -> Path:
          ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "steps '6000' and save_freq 2000 are not step counts"),
         (lambda d: [fake_run(d / n, '{"steps": 6, "save_freq": 2}') for n in "a"],
          ["--treated.flags=", "--treated.runs={d}/a,{d}/a"], "is given twice"),
+        (lambda d: [fake_run(d / n, json.dumps({"steps": 6, "save_freq": 2, "policy": {"type": "act_modified", "variant": v}}))
+                    for n, v in (("a", "standard"), ("b", "full"))],
+         ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "the runs differ in their policy settings"),
     ],
 )  # fmt: skip
 def test_hostile_tables_and_runs_are_one_line_before_any_work(
