@@ -265,7 +265,10 @@ def resolve_arm(cfg: CompareConfig, arm: ArmConfig) -> Arm:
                  "batch_size": config.get("batch_size"), "dataset.repo_id": dataset.get("repo_id"),
                  "dataset.root": dataset.get("root"), "dataset.episodes": dataset.get("episodes")}
             )  # fmt: skip
-            recipes.append(recipe_flags(config.get("policy") or {}))
+            policy = config.get("policy") or {}
+            if not isinstance(policy, dict):
+                raise ValueError(f"{path}: its policy is {type(policy).__name__}, not an object of settings")
+            recipes.append(recipe_flags(policy))
         if any(s != settings[0] for s in settings):
             raise ValueError(f"--{arm.name}.runs: the runs differ in budget or data: {settings}")
         if any(r != recipes[0] for r in recipes):

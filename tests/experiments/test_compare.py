@@ -295,6 +295,11 @@ def fake_run(folder: Path, config: str) -> Path:
         (lambda d: [fake_run(d / n, json.dumps({"steps": 6, "save_freq": 2, "policy": {"type": "act_modified", "variant": v}}))
                     for n, v in (("a", "standard"), ("b", "full"))],
          ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "the runs differ in their policy settings"),
+        (lambda d: [fake_run(d / n, '{"steps": 6, "save_freq": 2, "policy": [1]}') for n in "ab"],
+         ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "its policy is list, not an object of settings"),
+        (lambda d: [fake_run(d / n, json.dumps({"steps": 6, "save_freq": 2, "policy": {"type": "act_modified", "variant": "x"}}))
+                    for n in "ab"],
+         ["--treated.flags=", "--treated.runs={d}/a,{d}/b"], "Unknown act_modified variant 'x'; allowed:"),
     ],
 )  # fmt: skip
 def test_hostile_tables_and_runs_are_one_line_before_any_work(
