@@ -296,7 +296,7 @@ def resolve_arm(cfg: CompareConfig, arm: ArmConfig) -> Arm:
 # Policy fields a finished run's config holds that are not its recipe: read from the dataset (features, the
 # camera, the label keys), chosen for the machine (device, bf16, memory format), or LeRobot's bookkeeping.
 NOT_RECIPE = {
-    "type", "input_features", "output_features", "attention_camera", "label_keys", "device", "use_amp",
+    "input_features", "output_features", "attention_camera", "label_keys", "device", "use_amp",
     "channels_last", "push_to_hub", "repo_id", "private", "tags", "license", "pretrained_path",
 }  # fmt: skip
 

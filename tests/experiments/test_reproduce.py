@@ -193,8 +193,8 @@ def test_sweeps_pool_the_last_checkpoints_of_every_run_and_older_reproductions_k
     from lerobot_condground.experiments.reproduce import check_same_settings, command
 
     out = tmp_path / "run"
-    cfg = ReproduceConfig(output_dir=str(out), tasks="PickPlaceFixedBin-v0", train=TrainSettings(steps=2500))
-    cfg.train.save_freq = 1000
+    train = TrainSettings(steps=2500, save_freq=1000)
+    cfg = ReproduceConfig(output_dir=str(out), tasks="PickPlaceFixedBin-v0", train=train)
     sweep = next(s for s in plan(cfg) if s.kind == "sweep" and s.variant == "full")
     (paths,) = [
         a.removeprefix("--policy.paths=") for a in command(cfg, sweep, 1) if a.startswith("--policy.paths=")
