@@ -59,18 +59,28 @@ def patch(rgb: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray | None:
     return padded[top : top + side, left : left + side].astype(np.float32) / 255.0
 
 
-def render(task: str, condition: str, size: tuple[int, int], layouts: int, codec: str = "none"):
-    """(rgb, segmentation, entity table) of each layout's first frame; with codec=video the frames go through
-    the dataset's video codec as one stream, as a recording's frames do (inter-coded)."""
+def render(
+    task: str,
+    condition: str,
+    size: tuple[int, int],
+    layouts: int,
+    codec: str = "none",
+    start: int = SEED_OFFSET,
+    competitor_pool: str = "eval",
+):
+    """(rgb, segmentation, entity table) of each layout's first frame (layout seeds from `start`, competitors
+    from `competitor_pool`); with codec=video the frames go through the dataset's video codec as one stream, as
+    a recording's frames do (inter-coded)."""
     env = PickPlaceEnv(
         task=task,
         condition=condition,
         observation_height=size[0],
         observation_width=size[1],
         segmentation=True,
+        competitor_pool=competitor_pool,
     )
     frames = []
-    for seed in range(SEED_OFFSET, SEED_OFFSET + layouts):
+    for seed in range(start, start + layouts):
         obs, _ = env.reset(seed=seed)
         frames.append((obs["pixels"]["top"], obs["segmentation"], env.entity_table()))
     env.close()
