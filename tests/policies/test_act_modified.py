@@ -561,6 +561,21 @@ def test_prompt_selection_follows_the_phase_predictor_unless_given(overrides, se
     assert ACTModifiedConfig(**SMALL | overrides).prompt_selection == selection
 
 
+@pytest.mark.parametrize("variant", ["augmentation", "augmentation_attention", "full"])
+def test_pastes_ramp_in_by_default(variant):
+    """A from-scratch backbone fed pastes from the first batch never found the cube on Task 2: by default the
+    first training batch is pasted on with probability 0, and the ramp can be switched off."""
+    config = ACTModifiedConfig(variant=variant, **SMALL)
+    step = config.make_copy_paste_step()
+    assert (step.warmup_steps, step.current_prob()) == (3000, 0.0)
+    assert (
+        ACTModifiedConfig(variant=variant, copy_paste_warmup_steps=0, **SMALL)
+        .make_copy_paste_step()
+        .current_prob()
+        == config.copy_paste_prob
+    )
+
+
 def test_a_checkpoint_saved_before_prompt_selection_loads_as_it_was_trained(tmp_path):
     """Configs written before the field existed hold a phase predictor and no prompt_selection: they must
     load with the predictor picking the crop, as they were trained, not with the later default."""

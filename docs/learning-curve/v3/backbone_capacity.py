@@ -28,11 +28,10 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import torch
 import torchvision
-from separability import MIN_PIXELS, one_paste_each, render
+from separability import cell, one_paste_each, render
 from torch import nn
 from torchvision.models._utils import IntermediateLayerGetter
 from tqdm import tqdm
@@ -44,13 +43,6 @@ from lerobot_condground.processors.copy_paste import CATEGORIES
 TRAIN_SEED_OFFSET = 2_000_000
 
 
-def cell(mask: np.ndarray, grid: tuple[int, int]) -> tuple[int, int] | None:
-    ys, xs = np.nonzero(mask)
-    if len(ys) * (96 / mask.shape[0]) ** 2 < MIN_PIXELS:
-        return None
-    return int(ys.mean() * grid[0] / mask.shape[0]), int(xs.mean() * grid[1] / mask.shape[1])
-
-
 def scene_pairs(frames):
     """(rgb, the cube's mask, its object competitor's mask) of rendered scenes."""
     for rgb, seg, table in frames:
@@ -59,10 +51,10 @@ def scene_pairs(frames):
             yield rgb, seg == TARGET_OBJECT, seg == others[0]
 
 
-def paste_pairs(frames, category: str, wanted: int):
+def paste_pairs(frames, category: str, codec: str, wanted: int):
     """(rgb with one object-role paste of the category drawn on it as in training, the cube's mask, the
     paste's mask) of clean scenes."""
-    for k, rgb, mask in one_paste_each([(f[0], f[1]) for f in frames], category, "none", wanted):
+    for k, rgb, mask in one_paste_each([(f[0], f[1]) for f in frames], category, codec, wanted):
         yield rgb, frames[k][1] == TARGET_OBJECT, mask
 
 
@@ -82,7 +74,9 @@ def samples(pairs, grid) -> tuple[torch.Tensor, torch.Tensor]:
 def training_pairs(args, size):
     if args.train_source.startswith("paste_"):
         clean = render(args.task, "clean", size, args.train_layouts, args.camera_codec, TRAIN_SEED_OFFSET)
-        return paste_pairs(clean, args.train_source.removeprefix("paste_"), args.train_layouts)
+        return paste_pairs(
+            clean, args.train_source.removeprefix("paste_"), args.copy_paste_codec, args.train_layouts
+        )
     pool = "augmentation" if args.train_source == "augmentation_pool" else "eval"
     return scene_pairs(
         render(
@@ -128,6 +122,7 @@ def scores(model: TokenClassifier, images, cells, amp: bool) -> dict[str, float]
 
 def run(args, size: tuple[int, int]) -> list[dict]:
     torch.manual_seed(args.seed)
+    # A throwaway backbone for the grid's shape, built first so the classifier draws the published runs' weights.
     grid_probe, _ = backbone(args.layer)
     grid = tuple(grid_probe(torch.zeros(1, 3, *size))["feature_map"].shape[2:])
     train = samples(training_pairs(args, size), grid)
@@ -161,6 +156,7 @@ def run(args, size: tuple[int, int]) -> list[dict]:
                 "layer": args.layer,
                 "grid": f"{grid[0]}x{grid[1]}",
                 "camera_codec": args.camera_codec,
+                "copy_paste_codec": args.copy_paste_codec if args.train_source.startswith("paste_") else "",
                 "seed": args.seed,
                 "train_n": len(train[0]),
                 "test_n": len(test[0]),
@@ -194,6 +190,12 @@ def main():
     parser.add_argument("--epochs", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--camera_codec", default="video", choices=["none", "video"])
+    parser.add_argument(
+        "--copy_paste_codec",
+        default="none",
+        choices=["none", "video"],
+        help="the pastes' codec, as `--policy.copy_paste_codec` (paste_* sources)",
+    )
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -7,6 +7,10 @@ a run's pooled checkpoints on the protocol's 50 held-out layouts):
     python docs/learning-curve/v3/in_distribution.py run --out=outputs/compare32 --arms=bf16_cl,rendered_clutter
     python docs/learning-curve/v3/in_distribution.py analyse --out=outputs/compare32 --arms=bf16_cl,rendered_clutter
 
+An arm trained elsewhere is named by its run folders (`--runs=ARM=RUN_S0,RUN_S1`, one a seed), and a baseline whose
+pooled rollouts under this condition are already published is read from levers_rollouts.csv
+(`--published=true`: the first arm is not swept again).
+
 `analyse` adds the pair's row to levers.csv (condition `full_mixed (augmentation competitors)`, the protocol's
 columns: Newcombe/McNemar over pooled rollouts and the layout-clustered, run-aware interval), the rollouts to
 levers_rollouts.csv and the stage funnel to levers_funnel.csv (in place of earlier rows of the arms there).
@@ -38,14 +42,20 @@ STEPS = (4000, 5000, 6000)
 LAYOUTS, OFFSET = 50, 1_000_000
 
 
-def run_dir(out: Path, task: str, arm: str, seed: int) -> Path:
-    return out / "train" / f"{task}_standard_{arm}_s{seed}"
+def run_dir(args, arm: str, seed: int) -> Path:
+    if arm in args.runs:
+        return args.runs[arm][args.seeds.index(seed)]
+    return args.out / "train" / f"{args.task}_standard_{arm}_s{seed}"
+
+
+def swept(args) -> list[str]:
+    return args.arms[1:] if args.published else args.arms
 
 
 def sweep(args) -> None:
-    for arm in args.arms:
+    for arm in swept(args):
         for seed in args.seeds:
-            run = run_dir(args.out, args.task, arm, seed)
+            run = run_dir(args, arm, seed)
             paths = [run / "checkpoints" / f"{s:06d}" / "pretrained_model" for s in STEPS]
             command = [
                 str(Path(sys.executable).parent / "condground"), "sweep",
@@ -60,9 +70,14 @@ def sweep(args) -> None:
 
 def rollouts(args) -> pd.DataFrame:
     frames = []
-    for arm in args.arms:
+    if args.published:
+        table = pd.read_csv(HERE / "levers_rollouts.csv").query(
+            "lever == @args.arms[0] and task == @args.task and condition == @LABEL and seed in @args.seeds"
+        )
+        frames.append(table.assign(arm=table["lever"], run=table["seed"].map(args.seeds.index)))
+    for arm in swept(args):
         for index, seed in enumerate(args.seeds):
-            run = run_dir(args.out, args.task, arm, seed)
+            run = run_dir(args, arm, seed)
             table = read_table(args.out / "pool" / run.name / "results.parquet")
             step = table["checkpoint"].str.extract(r"/(\d{6})/pretrained_model")[0].astype(int)
             frames.append(table.assign(arm=arm, run=index, seed=seed, step=step))
@@ -97,16 +112,21 @@ def analyse(args) -> None:
     levers.assign(holm_p=holm(levers["cluster_p"])).to_csv(
         HERE / "levers.csv", index=False, float_format="%.4f"
     )
-    table = every.assign(lever=every["arm"], condition=LABEL, task=args.task)
+    # A published baseline's rows stay as they are: it may have been published with more seeds than this pair's.
+    table = every[every["arm"].isin(swept(args))].assign(
+        lever=lambda t: t["arm"], condition=LABEL, task=args.task
+    )
     rollout_columns = ["lever", "task", "condition", "seed", "step", "layout_seed", "success"]
-    merge_csv(HERE / "levers_rollouts.csv", table[rollout_columns].astype({"success": int}), args.arms)
+    merge_csv(HERE / "levers_rollouts.csv", table[rollout_columns].astype({"success": int}), swept(args))
     funnel = cell_metrics(table, by=("lever", "task", "condition"))
     funnel = funnel[
         ["lever", "task", "condition", "episodes", *(f"{m}{s}" for m in METRICS for s in ("", "_k", "_n"))]
     ]
-    merge_csv(HERE / "levers_funnel.csv", funnel, args.arms)
+    merge_csv(HERE / "levers_funnel.csv", funnel, swept(args))
 
-    per = table.groupby(["lever", "seed", "step"])["success"].mean().unstack("step")
+    per = (
+        every.assign(lever=every["arm"]).groupby(["lever", "seed", "step"])["success"].mean().unstack("step")
+    )
     print(per.to_string(float_format=lambda v: f"{100 * v:.0f} %"))
     print(pd.DataFrame([row]).drop(columns=["flags"]).to_string(index=False))
 
@@ -123,7 +143,15 @@ def main() -> None:
     parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default="0,1")
     parser.add_argument("--task", default="PickPlaceFixedBin-v0")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--runs",
+        type=lambda s: {k: [Path(p) for p in v.split(",")] for k, v in [s.split("=", 1)]},
+        default={},
+        help="ARM=RUN_S0,RUN_S1: an arm's run folders, one per seed",
+    )
+    parser.add_argument("--published", choices=("true", "false"), default="false")
     args = parser.parse_args()
+    args.published = args.published == "true"
     (sweep if args.stage == "run" else analyse)(args)
 
 

@@ -132,13 +132,18 @@ def backbone_tokens(checkpoint: str, task: str, condition: str, layouts: int, pa
     return out, pasted
 
 
-def token(features: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
-    """The feature vector of the token whose cell holds the mask's centroid."""
+def cell(mask: np.ndarray, grid: tuple[int, int]) -> tuple[int, int] | None:
+    """The (row, column) of the grid cell holding the mask's centroid; None for an object too small to see."""
     ys, xs = np.nonzero(mask)
     if len(ys) * (96 / mask.shape[0]) ** 2 < MIN_PIXELS:
         return None
-    (height, width), (h, w) = mask.shape, features.shape[1:]
-    return features[:, int(ys.mean() * h / height), int(xs.mean() * w / width)]
+    return int(ys.mean() * grid[0] / mask.shape[0]), int(xs.mean() * grid[1] / mask.shape[1])
+
+
+def token(features: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+    """The feature vector of the token whose cell holds the mask's centroid."""
+    where = cell(mask, features.shape[1:])
+    return None if where is None else features[:, where[0], where[1]]
 
 
 def score(target: list[np.ndarray], other: list[np.ndarray], seed: int) -> dict[str, float]:
