@@ -138,7 +138,7 @@ class ACTModifiedConfig(ACTConfig):
     copy_paste_codec: str = CopyPasteParams.codec
     # The paste probability ramps in over the first 3000 training batches: a backbone trained from scratch must
     # first find the target's few pixels from the action loss, and pastes from the first step kept it from ever
-    # doing so on Task 2 (two seeds of `full`); on Task 1 the ramp cost nothing (docs/learning-curve/v3).
+    # doing so on Task 2 (two seeds of `full`); on Task 1 it cost nothing in the one seed measured (docs/learning-curve/v3).
     copy_paste_warmup_steps: int = 3000
 
     # Normalization layers of the ResNet backbone: frozen_batchnorm (LeRobot's ACT, made for ImageNet

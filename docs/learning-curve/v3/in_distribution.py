@@ -33,7 +33,7 @@ from lerobot_condground.evaluation.statistics import (
     holm,
     paired_difference,
 )
-from lerobot_condground.experiments.compare import merge_csv
+from lerobot_condground.experiments.compare import merge_csv, published_rollouts
 
 HERE = Path(__file__).parent
 CONDITION = "full_mixed"
@@ -71,8 +71,8 @@ def sweep(args) -> None:
 def rollouts(args) -> pd.DataFrame:
     frames = []
     if args.published:
-        table = pd.read_csv(HERE / "levers_rollouts.csv").query(
-            "lever == @args.arms[0] and task == @args.task and condition == @LABEL and seed in @args.seeds"
+        table = published_rollouts(HERE / "levers_rollouts.csv", args.arms[0], args.task).query(
+            "condition == @LABEL and seed in @args.seeds"
         )
         frames.append(table.assign(arm=table["lever"], run=table["seed"].map(args.seeds.index)))
     for arm in swept(args):
